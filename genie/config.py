@@ -1,0 +1,153 @@
+"""GenieConfig: the dynamics model's hyper-parameters, field-for-field compatible with the published config.json."""
+import dataclasses
+import json
+import math
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+
+class ConfigError(ValueError):
+    """A config file or dict that does not describe a valid model."""
+
+
+def _check_type(name: str, value: Any, annotation: Any, source: str) -> Any:
+    """Coerce JSON values to the field's type; raise ConfigError naming the field when they do not fit."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Union:  # Optional[X]
+        if value is None:
+            return None
+        annotation = next(a for a in typing.get_args(annotation) if a is not type(None))
+    if annotation is bool:
+        if isinstance(value, bool):
+            return value
+    elif annotation is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif annotation is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            return float(value)
+    elif annotation is str:
+        if isinstance(value, str):
+            return value
+    elif typing.get_origin(annotation) in (list, tuple) or annotation in (list, tuple):
+        if isinstance(value, (list, tuple)):
+            return list(value)
+    else:
+        return value
+    raise ConfigError(f"{source}: field {name!r} must be {getattr(annotation, '__name__', annotation)}, got {value!r}")
+
+
+def dataclass_from_dict(cls, d: dict, source: str = "config"):
+    """Build dataclass `cls` from a JSON dict: unknown keys and wrong types are errors that name `source`."""
+    if not isinstance(d, dict):
+        raise ConfigError(f"{source}: expected a JSON object, got {type(d).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise ConfigError(f"{source}: unknown key(s) {unknown} for {cls.__name__}; known keys: {sorted(names)}")
+    kwargs = {k: _check_type(k, v, hints[k], source) for k, v in d.items()}
+    try:
+        return cls(**kwargs)
+    except TypeError as e:  # missing required fields
+        raise ConfigError(f"{source}: {e}") from None
+
+
+def load_json(path, what: str = "config") -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} file not found: {path}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{path}: not valid JSON ({e})") from None
+
+
+@dataclass
+class GenieConfig:
+    """Spatio-temporal MaskGIT dynamics model. Defaults are the published GENIE_35M config.
+
+    Fields after the marked line are opt-in extensions: their defaults keep the published semantics, so published
+    checkpoints load unchanged.
+    """
+    num_layers: int = 32
+    num_heads: int = 8
+    d_model: int = 256
+    T: int = 16  # frames per window
+    S: int = 256  # tokens per frame (H * W)
+    image_vocab_size: int = 262144  # distinct image tokens; the mask token id is this value
+    use_mup: bool = False
+
+    num_factored_vocabs: int = 2
+    factored_vocab_size: Optional[int] = None  # derived: image_vocab_size ** (1 / num_factored_vocabs)
+
+    # MaskGIT training corruption (see data.get_maskgit_collator)
+    max_corrupt_rate: float = 0.2
+    non_mlm_ratio: float = 0.5
+    num_prompt_frames: int = 8
+
+    qkv_bias: bool = False
+    proj_bias: bool = True
+    attn_drop: float = 0.0
+    qk_norm: bool = False
+
+    mlp_ratio: float = 4.0
+    mlp_drop: float = 0.0
+    mlp_bias: bool = True
+
+    # ---- opt-in extensions (defaults = published behaviour) ----
+
+    def __post_init__(self):
+        for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"GenieConfig.{name} must be positive, got {getattr(self, name)}")
+        if self.d_model % self.num_heads:
+            raise ConfigError(f"GenieConfig: d_model {self.d_model} is not divisible by num_heads {self.num_heads}")
+        if math.isqrt(self.S) ** 2 != self.S:
+            raise ConfigError(f"GenieConfig: S={self.S} is not a square number of tokens (H = W required)")
+        root = round(self.image_vocab_size ** (1 / self.num_factored_vocabs))
+        if root ** self.num_factored_vocabs != self.image_vocab_size:
+            raise ConfigError(f"GenieConfig: image_vocab_size {self.image_vocab_size} is not a perfect "
+                              f"{self.num_factored_vocabs}-th power")
+        if self.factored_vocab_size is not None and self.factored_vocab_size != root:
+            raise ConfigError(f"GenieConfig: factored_vocab_size {self.factored_vocab_size} != "
+                              f"image_vocab_size ** (1/{self.num_factored_vocabs}) = {root}")
+        self.factored_vocab_size = root
+        if not 1 <= self.num_prompt_frames < self.T:
+            raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
+        if not 0.0 <= self.max_corrupt_rate <= 1.0 or not 0.0 <= self.non_mlm_ratio <= 1.0:
+            raise ConfigError("GenieConfig: max_corrupt_rate and non_mlm_ratio must be in [0, 1]")
+
+    @property
+    def H(self) -> int:
+        return math.isqrt(self.S)
+
+    @property
+    def W(self) -> int:
+        return math.isqrt(self.S)
+
+    @property
+    def mask_token_id(self) -> int:
+        return self.image_vocab_size
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "GenieConfig") -> "GenieConfig":
+        return dataclass_from_dict(cls, d, source)
+
+    def save(self, json_path) -> None:
+        Path(json_path).write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
+
+    @classmethod
+    def from_pretrained(cls, json_path) -> "GenieConfig":
+        """Load a config JSON file (the name the 1X code uses)."""
+        return cls.from_dict(load_json(json_path, "GENIE config"), source=str(json_path))
+
+    def shallow_copy(self) -> "GenieConfig":
+        return dataclasses.replace(self)
