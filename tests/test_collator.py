@@ -1,0 +1,144 @@
+"""MaskGIT training collator: masking and corruption invariants, rates, determinism."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from data import RawTokenDataset, get_maskgit_collator, write_token_dataset
+from genie.config import GenieConfig
+from genie.factorization import factorize_token_ids
+
+T, S, VOCAB = 6, 16, 64  # 2 factors of 8
+
+
+def tiny_config(**overrides):
+    fields = dict(num_layers=1, num_heads=1, d_model=8, T=T, S=S, image_vocab_size=VOCAB, num_prompt_frames=2)
+    return GenieConfig(**{**fields, **overrides})
+
+
+def make_features(batch_size, seed=0, actions=False):
+    g = torch.Generator().manual_seed(seed)
+    features = []
+    for _ in range(batch_size):
+        x = torch.randint(0, VOCAB, (T * S,), generator=g)
+        feature = {"input_ids": x, "labels": x, "attention_mask": torch.ones_like(x), "start_ind": 0}
+        if actions:
+            feature["actions"] = torch.randn(T, 3, generator=g)
+        features.append(feature)
+    return features
+
+
+def frames(x):
+    """(B, T*S) -> (B, T, S)"""
+    return x.view(len(x), T, S)
+
+
+@pytest.mark.parametrize("non_mlm_ratio", [0.0, 0.5, 1.0])
+def test_invariants(non_mlm_ratio):
+    config = tiny_config(non_mlm_ratio=non_mlm_ratio)
+    collate = get_maskgit_collator(config, seed=0)
+    for i in range(30):
+        features = make_features(4, seed=i)
+        originals = torch.stack([f["input_ids"] for f in features]).clone()
+        batch = collate(features)
+        assert set(batch) == {"input_ids", "labels"}
+        assert batch["input_ids"].dtype == batch["labels"].dtype == torch.int64
+        assert batch["input_ids"].shape == batch["labels"].shape == (4, T * S)
+        assert torch.equal(batch["labels"], originals)
+        assert torch.equal(torch.stack([f["input_ids"] for f in features]), originals)  # features left intact
+        x = frames(batch["input_ids"])
+        masked = x == config.mask_token_id
+        assert masked.any()
+        assert not masked[:, 0].any()
+        assert ((x >= 0) & (x <= VOCAB)).all()
+        if non_mlm_ratio == 1.0:
+            assert not masked[:, :config.num_prompt_frames].any()
+
+
+def test_without_corruption_only_masks_change():
+    config = tiny_config(max_corrupt_rate=0.0, non_mlm_ratio=0.0)
+    collate = get_maskgit_collator(config, seed=1)
+    masked_fraction = []
+    for i in range(200):
+        batch = collate(make_features(8, seed=i))
+        x, labels = frames(batch["input_ids"]), frames(batch["labels"])
+        masked = x == config.mask_token_id
+        assert torch.equal(x[~masked], labels[~masked])
+        masked_fraction.append(masked[:, 1:].float().mean().item())
+    # Per-frame mask probability cos(pi/2 u), u ~ U(0, 1), has mean 2/pi.
+    assert abs(np.mean(masked_fraction) - 2 / math.pi) < 0.03
+
+
+def test_random_corruption_rate():
+    config = tiny_config(max_corrupt_rate=1.0, non_mlm_ratio=0.0)
+    collate = get_maskgit_collator(config, seed=2)
+    changed = []
+    for i in range(400):
+        batch = collate(make_features(2, seed=i))
+        # Frame 0 is never masked, so it shows the random corruption alone.
+        f_in = factorize_token_ids(frames(batch["input_ids"])[:, 0], 2, 8)
+        f_label = factorize_token_ids(frames(batch["labels"])[:, 0], 2, 8)
+        changed.append((f_in != f_label).float().mean().item())
+    # A factor is redrawn with probability u (u ~ U(0, 1) per batch) and lands on a new value with 7/8.
+    assert abs(np.mean(changed) - 0.5 * 7 / 8) < 0.05
+
+
+def test_autoregressive_corruption():
+    config = tiny_config(max_corrupt_rate=0.0, non_mlm_ratio=1.0, T=8, num_prompt_frames=3)
+    collate = get_maskgit_collator(config, seed=3)
+    first_frames, wrong_rate = [], []
+    for i in range(100):
+        g = torch.Generator().manual_seed(i)
+        labels = torch.randint(0, VOCAB, (4, 8, S), generator=g)
+        batch = collate([{"input_ids": x.flatten()} for x in labels])
+        x = batch["input_ids"].view(4, 8, S)
+        changed = (x != labels).any(dim=(0, 2))
+        first = int(changed.float().argmax())
+        first_frames.append(first)
+        unmasked = x[:, first:] != config.mask_token_id
+        wrong_rate.append((x[:, first:] != labels[:, first:])[unmasked].float().mean().item())
+    assert min(first_frames) >= 3 and set(first_frames) == {3, 4, 5, 6, 7}
+    # Factors are kept with probability correct_rate in [0.25 * 0.9^k, 1]: a sizeable but partial corruption.
+    assert 0.2 < np.mean(wrong_rate) < 0.7
+
+
+def test_deterministic_with_seed():
+    config = tiny_config()
+    outputs = [get_maskgit_collator(config, seed=seed)(make_features(3)) for seed in (5, 5, 6)]
+    assert torch.equal(outputs[0]["input_ids"], outputs[1]["input_ids"])
+    assert not torch.equal(outputs[0]["input_ids"], outputs[2]["input_ids"])
+    torch.manual_seed(0)
+    a = get_maskgit_collator(config)(make_features(3))
+    torch.manual_seed(0)
+    b = get_maskgit_collator(config)(make_features(3))
+    assert torch.equal(a["input_ids"], b["input_ids"])
+
+
+def test_actions_stacked():
+    features = make_features(3, actions=True)
+    batch = get_maskgit_collator(tiny_config(), seed=0)(features)
+    assert batch["actions"].shape == (3, T, 3) and batch["actions"].dtype == torch.float32
+    assert torch.equal(batch["actions"][2], features[2]["actions"])
+    del features[1]["actions"]
+    with pytest.raises(ValueError, match="some examples have actions"):
+        get_maskgit_collator(tiny_config(), seed=0)(features)
+
+
+def test_bad_windows_rejected():
+    collate = get_maskgit_collator(tiny_config(), seed=0)
+    with pytest.raises(ValueError, match="T\\*S"):
+        collate([{"input_ids": torch.zeros(T * S - 1, dtype=torch.long)}])
+    with pytest.raises(ValueError, match="image_vocab_size"):
+        collate([{"input_ids": torch.full((T * S,), VOCAB)}])
+
+
+def test_with_dataset_and_dataloader(tmp_path):
+    rng = np.random.default_rng(0)
+    write_token_dataset(tmp_path, rng.integers(0, VOCAB, (40, 4, 4)), actions={"a": rng.normal(size=(40, 2))},
+                        metadata={"vocab_size": VOCAB})
+    ds = RawTokenDataset(tmp_path, window_size=T, stride=2)
+    loader = torch.utils.data.DataLoader(ds, batch_size=5, collate_fn=get_maskgit_collator(tiny_config(), seed=0))
+    batch = next(iter(loader))
+    assert batch["input_ids"].shape == (5, T * S) and batch["actions"].shape == (5, T, 2)
+    assert torch.equal(batch["labels"][3], ds[3]["input_ids"])
