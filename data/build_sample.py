@@ -1,0 +1,105 @@
+"""Build the embedded sample world: first-person frames + actions from ViZDoom, tokenized into the 1X layout.
+
+    python -m data.build_sample --out_dir data/sample
+
+1. `data.sample_world` renders train/val episodes (held-out episodes and maps for val) into out_dir/raw/*.npz;
+2. the small MAGVIT2 tokenizer shipped in magvit2/pretrained/sample_world_64 (or one trained here with
+   --train_tokenizer, using exactly the recipe that produced the shipped weights) encodes 64x64 frames to 16x16 tokens;
+3. the tokens, segment ids and actions are written to out_dir/train and out_dir/val (1X layout, with actions/).
+Each step is skipped when its output already exists and matches, so a second run is cheap.
+"""
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from data.sample_world import build_sample_world
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHIPPED_TOKENIZER = "magvit2/pretrained/sample_world_64"
+TOKENIZER_CONFIG = "magvit2/configs/sample_world_64.json"
+# The exact recipe of the shipped tokenizer (see magvit2/pretrained/sample_world_64/README.md).
+TOKENIZER_RECIPE = ["--vq_config", TOKENIZER_CONFIG, "--resolution", "64", "--batch_size", "16",
+                    "--learning_rate", "4e-4", "--max_train_steps", "3000", "--seed", "0", "--no_gan"]
+
+
+def train_tokenizer(raw_dir: Path, output_dir: Path, extra_args=()) -> Path:
+    """Train the sample world's tokenizer with magvit2/train.py; returns its final checkpoint directory."""
+    final = output_dir / "final_checkpt"
+    if (final / "model.safetensors").exists():
+        print(f"{final}: tokenizer already trained; reusing it")
+        return final
+    cmd = [sys.executable, "-m", "magvit2.train", "--train_data", str(raw_dir / "train.npz"),
+           "--val_data", str(raw_dir / "val.npz"), "--output_dir", str(output_dir), *TOKENIZER_RECIPE, *extra_args]
+    print("training the sample-world tokenizer:", " ".join(cmd))
+    subprocess.run(cmd, check=True)
+    return final
+
+
+def resolve_tokenizer(path: str) -> Path:
+    p = Path(path)
+    if not p.exists() and not p.is_absolute() and (REPO_ROOT / p).exists():
+        p = REPO_ROOT / p
+    if not (p / "model.safetensors").exists():
+        raise FileNotFoundError(f"tokenizer checkpoint {path} not found (expected config.json + model.safetensors); "
+                                f"train one with `python -m data.build_sample --train_tokenizer`")
+    return p
+
+
+def tokenize_split(raw_npz: Path, out_dir: Path, tokenizer_dir: Path, tokenizer_ref: str, batch_size: int,
+                   device: str, overwrite: bool) -> None:
+    """Encode one split's npz into a token dataset, unless an up-to-date one is already there."""
+    from magvit2 import VQModel
+    from magvit2.tokenize import describe_inputs, tokenize_episodes
+
+    stamp = {"raw": str(raw_npz), "raw_mtime": raw_npz.stat().st_mtime,
+             "tokenizer_mtime": (tokenizer_dir / "model.safetensors").stat().st_mtime}
+    stamp_path = out_dir / "build_stamp.json"
+    if not overwrite and stamp_path.exists() and json.loads(stamp_path.read_text()) == stamp:
+        print(f"{out_dir}: token dataset up to date; skipping")
+        return
+    model = VQModel.from_checkpoint(tokenizer_dir).to(device).eval()
+    t0 = time.time()
+    tokenize_episodes(model, describe_inputs([raw_npz]), out_dir, tokenizer_ckpt=tokenizer_ref,
+                      batch_size=batch_size, overwrite=True)
+    stamp_path.write_text(json.dumps(stamp, indent=2))
+    print(f"{out_dir}: tokenized in {time.time() - t0:.1f}s")
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out_dir", default="data/sample", help="root of the sample world (raw/, train/, val/)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the episode generator")
+    p.add_argument("--tokenizer", default=SHIPPED_TOKENIZER,
+                   help="tokenizer checkpoint directory used to encode the frames (default: the shipped one)")
+    p.add_argument("--train_tokenizer", action="store_true",
+                   help="train the tokenizer here with the shipped recipe (into OUT_DIR/tokenizer) instead of "
+                        "using the shipped weights")
+    p.add_argument("--batch_size", type=int, default=256, help="frames per encoder batch when tokenizing")
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
+    p.add_argument("--overwrite", action="store_true", help="rebuild every step even if outputs exist")
+    return p.parse_args(argv)
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    out = Path(args.out_dir)
+    raw = out / "raw"
+    build_sample_world(raw, seed=args.seed, overwrite=args.overwrite)
+    if args.train_tokenizer:
+        tokenizer_dir = train_tokenizer(raw, out / "tokenizer")
+        tokenizer_ref = str(tokenizer_dir)
+    else:
+        tokenizer_dir = resolve_tokenizer(args.tokenizer)
+        tokenizer_ref = args.tokenizer
+    for split in ("train", "val"):
+        tokenize_split(raw / f"{split}.npz", out / split, tokenizer_dir, tokenizer_ref, args.batch_size,
+                       args.device, args.overwrite)
+
+
+if __name__ == "__main__":
+    main()
