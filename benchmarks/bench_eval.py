@@ -1,0 +1,180 @@
+"""Challenge evaluation and generation speed: full recomputation (the published protocol) vs the temporal KV cache.
+
+    python benchmarks/bench_eval.py                      # 8 layers, d_model 256, 16x16 tokens, T 16, CPU fp32
+    python benchmarks/bench_eval.py --device cuda --dtype bf16 --num_layers 32   # GENIE_35M shape on a GPU
+
+Both evaluators run the same weights on the same synthetic validation windows (written with the data API and read
+back with the challenge's window 16 / stride 15 / non-overlapping filter). The full-recomputation evaluator is
+written here, following the published protocol: for every target frame t and every MaskGIT step it recomputes
+the whole window with ground truth before t and masks from t on. Ours is STMaskGIT.teacher_forced (context once,
+all targets in one cached pass per step). Prints seconds per generated frame for both, the ratio, and whether the
+metrics agree (CE to tolerance; sampled tokens identical at temperature 0). Then autoregressive generation
+(8 prompt frames -> 16) with and without the cache.
+"""
+import argparse
+import contextlib
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from einops import rearrange
+
+import genie
+from data import RawTokenDataset, write_token_dataset
+from genie import GenieConfig, STMaskGIT, maskgit_sample
+from genie.evaluation import factored_cross_entropy
+
+CONFIG_PATH = Path(genie.__file__).parent / "configs" / "magvit_n8_h8_d256.json"
+
+
+def parse_args():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--checkpoint_dir", default=None,
+                   help="Benchmark these weights (default: a randomly initialized model of --num_layers).")
+    p.add_argument("--num_layers", type=int, default=8, help="Layers of the random model (8: benchmark shape, "
+                                                             "32: GENIE_35M).")
+    p.add_argument("--num_windows", type=int, default=2, help="Validation windows to evaluate.")
+    p.add_argument("--batch_size", type=int, default=1, help="Windows per forward pass.")
+    p.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT steps per frame.")
+    p.add_argument("--device", default="cpu", help="cpu or cuda.")
+    p.add_argument("--dtype", choices=("fp32", "bf16"), default="fp32", help="bf16 runs under autocast (CUDA).")
+    p.add_argument("--seed", type=int, default=0, help="Seed of the weights, data and sampler.")
+    p.add_argument("--skip_generation", action="store_true", help="Only benchmark teacher-forced evaluation.")
+    return p.parse_args()
+
+
+def build_model(args) -> STMaskGIT:
+    if args.checkpoint_dir:
+        return STMaskGIT.from_pretrained(args.checkpoint_dir)
+    config = dataclasses.replace(GenieConfig.from_pretrained(CONFIG_PATH), num_layers=args.num_layers)
+    model = STMaskGIT(config)
+    model.init_weights()
+    with torch.no_grad():  # position-dependent, non-uniform predictions make the metric comparison meaningful
+        model.pos_embed_TSC.normal_(0, 0.5)
+        model.out_x_proj.weight.normal_(0, config.d_model ** -0.5)
+    return model.eval()
+
+
+def synthetic_windows(config: GenieConfig, num_windows: int, seed: int, root: Path) -> torch.Tensor:
+    """Slowly changing token videos in the 1X layout, read back as challenge windows -> (N, T, H, W)."""
+    rng = np.random.default_rng(seed)
+    T, stride, s = config.T, 15, config.H
+    frames = (T - 1) * stride + 1
+    video = rng.integers(0, config.image_vocab_size, size=(num_windows * frames, s, s))
+    changes = rng.random(video.shape) < 0.9  # keep 10% of each frame's tokens from the previous frame
+    for i in range(1, len(video)):
+        video[i] = np.where(changes[i], video[i], video[i - 1])
+    write_token_dataset(root / "val", video, segment_ids=np.repeat(np.arange(num_windows), frames),
+                        metadata={"vocab_size": config.image_vocab_size})
+    dataset = RawTokenDataset(root / "val", window_size=T, stride=stride, filter_overlaps=True)
+    return torch.stack([dataset[i]["input_ids"].view(T, s, s) for i in range(num_windows)])
+
+
+def full_recompute_teacher_forced(model: STMaskGIT, x_BTHW: torch.Tensor, maskgit_steps: int,
+                                  generator: torch.Generator):
+    """The published protocol: every target frame, every MaskGIT step, recomputes the whole window."""
+    B, T = x_BTHW.shape[:2]
+    F_ = model.config.num_factored_vocabs
+
+    def logits_fn(frames_NHW):
+        frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
+        per_target = []
+        for t in range(1, T):
+            window = x_BTHW.clone()
+            window[:, t] = frames_BnHW[:, t - 1]
+            window[:, t + 1:] = model.mask_token_id
+            per_target.append(model.compute_logits(window)[:, :, t])
+        return rearrange(torch.stack(per_target, dim=1), "B n (F V) H W -> (B n) V F H W", F=F_)
+
+    masked = torch.full((B * (T - 1), *x_BTHW.shape[2:]), model.mask_token_id, device=x_BTHW.device)
+    samples, logits = maskgit_sample(logits_fn, masked, model.mask_token_id, maskgit_steps, generator=generator)
+    return (rearrange(samples, "(B n) H W -> B n H W", B=B), rearrange(logits, "(B n) V F H W -> B V F n H W", B=B))
+
+
+def cached_teacher_forced(model, x_BTHW, maskgit_steps, generator):
+    return model.teacher_forced(x_BTHW, maskgit_steps, generator=generator)
+
+
+def timed_eval(fn, model, windows, args, device, autocast):
+    """-> (s per generated frame, CE, acc, samples)"""
+    generator = torch.Generator(device=device).manual_seed(args.seed)
+    elapsed, ce_sum, correct, samples_all = 0.0, 0.0, 0, []
+    for a in range(0, len(windows), args.batch_size):
+        x = windows[a:a + args.batch_size].to(device)
+        sync(device)
+        start = time.perf_counter()
+        with torch.no_grad(), autocast:
+            samples, logits = fn(model, x, args.maskgit_steps, generator)
+        sync(device)
+        elapsed += time.perf_counter() - start
+        ce_sum += factored_cross_entropy(logits, x[:, 1:]).sum().item()
+        correct += (samples == x[:, 1:]).sum().item()
+        samples_all.append(samples.cpu())
+    num_tokens = windows[:, 1:].numel()
+    return elapsed / (len(windows) * (windows.shape[1] - 1)), ce_sum / num_tokens, correct / num_tokens, \
+        torch.cat(samples_all)
+
+
+def timed_generation(model, windows, args, device, autocast, use_cache: bool, num_prompt: int = 8) -> float:
+    generator = torch.Generator(device=device).manual_seed(args.seed)
+    elapsed = 0.0
+    for a in range(0, len(windows), args.batch_size):
+        prompt = windows[a:a + args.batch_size, :num_prompt].to(device)
+        sync(device)
+        start = time.perf_counter()
+        with autocast:
+            model.generate(prompt, windows.shape[1] - num_prompt, args.maskgit_steps, use_cache=use_cache,
+                           generator=generator)
+        sync(device)
+        elapsed += time.perf_counter() - start
+    return elapsed / (len(windows) * (windows.shape[1] - num_prompt))
+
+
+def sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def main():
+    args = parse_args()
+    device = torch.device(args.device)
+    torch.manual_seed(args.seed)
+    model = build_model(args).to(device)
+    config = model.config
+    autocast = (torch.autocast(device.type, dtype=torch.bfloat16) if args.dtype == "bf16"
+                else contextlib.nullcontext())
+    with tempfile.TemporaryDirectory() as tmp:
+        windows = synthetic_windows(config, args.num_windows, args.seed, Path(tmp))
+    print(f"device {device} ({torch.get_num_threads()} threads), {args.dtype}, torch {torch.__version__}; model "
+          f"{config.num_layers} layers, d_model {config.d_model}, T {config.T}, {config.H}x{config.W} tokens; "
+          f"{args.num_windows} windows, batch {args.batch_size}, maskgit_steps {args.maskgit_steps}")
+
+    with torch.no_grad(), autocast:  # warm-up (allocator, kernels)
+        model.teacher_forced(windows[:1].to(device), 1)
+
+    full_s, full_ce, full_acc, full_samples = timed_eval(full_recompute_teacher_forced, model, windows, args, device,
+                                                         autocast)
+    ours_s, ours_ce, ours_acc, ours_samples = timed_eval(cached_teacher_forced, model, windows, args, device,
+                                                         autocast)
+    same = (full_samples == ours_samples).float().mean().item()
+    ce_tol = 1e-4 if args.dtype == "fp32" else 2e-2
+    agree = abs(full_ce - ours_ce) <= ce_tol * full_ce and (args.dtype != "fp32" or same > 0.999)
+    print(f"teacher-forced evaluation, s per generated frame: full recomputation {full_s:.4f}, "
+          f"ours (KV cache) {ours_s:.4f}, speed-up {full_s / ours_s:.1f}x")
+    print(f"  metrics: CE {full_ce:.5f} vs {ours_ce:.5f}; acc {full_acc:.5f} vs {ours_acc:.5f}; "
+          f"identical sampled tokens {100 * same:.2f}% -> {'agree' if agree else 'DISAGREE'}")
+
+    if not args.skip_generation:
+        no_cache = timed_generation(model, windows, args, device, autocast, use_cache=False)
+        cache = timed_generation(model, windows, args, device, autocast, use_cache=True)
+        print(f"autoregressive generation (8 prompt frames -> 16), s per frame: without cache {no_cache:.4f}, "
+              f"with cache {cache:.4f}, speed-up {no_cache / cache:.1f}x")
+    if not agree:
+        raise SystemExit("the two evaluators disagree")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,99 @@
+"""Training throughput (tokens/s) of STMaskGIT: the issue's reference shape, one full optimizer step per iteration.
+
+    python benchmarks/bench_train.py                       # 8 layers, d_model 256, T 16, 16x16, batch 2, fp32, CPU
+    python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
+
+A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
+gradient clipping and AdamW. Tokens per step = batch * T * S. The published implementation trains this shape at
+~1,840 tokens/s on the project's 2-core CPU (fp32, batch 2); the ratio to that figure is printed (it is only
+meaningful for that shape on that machine).
+"""
+import argparse
+import time
+
+import torch
+
+from data import get_maskgit_collator
+from genie.config import GenieConfig
+from genie.st_mask_git import STMaskGIT
+
+PUBLISHED_TOKENS_PER_S = 1840.0
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description="Measure STMaskGIT training tokens/s.",
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--num_layers", type=int, default=8, help="Transformer blocks.")
+    p.add_argument("--d_model", type=int, default=256, help="Model width.")
+    p.add_argument("--num_heads", type=int, default=8, help="Attention heads.")
+    p.add_argument("--T", type=int, default=16, help="Frames per window.")
+    p.add_argument("--s", type=int, default=16, help="Token grid side (S = s * s).")
+    p.add_argument("--image_vocab_size", type=int, default=262144, help="Image token vocabulary.")
+    p.add_argument("--batch_size", type=int, default=2, help="Windows per step.")
+    p.add_argument("--warmup_steps", type=int, default=2, help="Untimed steps first.")
+    p.add_argument("--steps", type=int, default=5, help="Timed steps.")
+    p.add_argument("--device", default="cpu", help="torch device.")
+    p.add_argument("--mixed_precision", default="no", choices=("no", "bf16"), help="bf16 autocast (CUDA).")
+    p.add_argument("--compile", action="store_true", help="torch.compile the model.")
+    p.add_argument("--profile", action="store_true", help="Print the top operators of one profiled step.")
+    return p.parse_args(argv)
+
+
+def make_step(model, optimizer, collate, windows, device, mixed_precision):
+    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=mixed_precision == "bf16")
+
+    def step():
+        batch = collate(windows)
+        with autocast:
+            loss = model(input_ids=batch["input_ids"].to(device), labels=batch["labels"].to(device)).loss
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        return loss.item()
+    return step
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    device = torch.device(args.device)
+    config = GenieConfig(num_layers=args.num_layers, num_heads=args.num_heads, d_model=args.d_model, T=args.T,
+                         S=args.s ** 2, image_vocab_size=args.image_vocab_size)
+    torch.manual_seed(0)
+    model = STMaskGIT(config)
+    model.init_weights()
+    model.to(device).train()
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4, fused=device.type == "cuda" or None)
+    compiled = torch.compile(model) if args.compile else model
+    generator = torch.Generator().manual_seed(0)
+    windows = [{"input_ids": torch.randint(0, config.image_vocab_size, (config.T * config.S,), generator=generator)}
+               for _ in range(args.batch_size)]
+    step = make_step(compiled, optimizer, get_maskgit_collator(config, seed=0), windows, device,
+                     args.mixed_precision)
+
+    for _ in range(args.warmup_steps):
+        step()
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    for _ in range(args.steps):
+        step()
+    seconds = (time.perf_counter() - t0) / args.steps
+    cpu_seconds = (time.process_time() - cpu0) / args.steps  # all threads: compare with wall time on busy machines
+    tokens_per_s = args.batch_size * config.T * config.S / seconds
+    params = sum(p.numel() for p in model.parameters())
+    print(f"STMaskGIT {args.num_layers} layers, d_model {args.d_model}, T {args.T}, {args.s}x{args.s}, "
+          f"{params / 1e6:.1f} M params, batch {args.batch_size}, {args.mixed_precision}, {device.type}, "
+          f"threads {torch.get_num_threads()}")
+    ratio = tokens_per_s / PUBLISHED_TOKENS_PER_S
+    print(f"{seconds:.3f} s/step (process CPU time {cpu_seconds:.3f} s/step), {tokens_per_s:,.0f} tokens/s; "
+          f"ratio to the published {PUBLISHED_TOKENS_PER_S:,.0f} tokens/s: {ratio:.2f}x")
+
+    if args.profile:
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            step()
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,496 @@
+"""Sample world: first-person walks through Freedoom 2 maps rendered headless by ViZDoom, with per-frame actions.
+
+This is the offline stand-in for the 1X robot videos: an explorer policy walks through a map with no monsters, and
+every game tic (35 Hz) we record a 64x64 RGB frame, the buttons pressed and a `driving_command`.
+
+Conventions (also stored in each .npz):
+- `buttons` (N, 5) float32 0/1 in the order of BUTTON_NAMES: MOVE_FORWARD, MOVE_BACKWARD, TURN_LEFT, TURN_RIGHT, USE.
+  Button row t is what was held during the tic that leads from frame t to frame t+1.
+- `driving_command` (N, 2) float32 = (linear, angular) velocity over that same tic, from the pose change between
+  frame t and frame t+1 (a forward difference, so it describes the motion commanded at frame t, like the 1X robot's):
+  linear = displacement projected on the heading at frame t, in map units/s (64 map units ~ 2 m; the walker's top
+  speed is about 146 units/s, and Doom momentum makes it ramp up and coast for a few tics); angular = heading
+  change in rad/s, counter-clockwise positive, so TURN_LEFT gives a positive angular velocity (about 1.07 rad/s).
+- `poses` (N, 3) float32 = (x, y, heading in degrees) at frame t, for checks and plots.
+- No strafing: (linear, angular) then fully describes the commanded motion, as for a wheeled base.
+- The walker moves at half of Doom's walking and turning speed (WorldConfig.walk_speed / turn_speed, sent as
+  ViZDoom delta inputs), so that over the challenge's model step (15 frames, 0.43 s) the view turns about 26
+  degrees and moves about 60 units instead of 53 degrees and 125 units: consecutive model frames overlap enough
+  to be predictable.
+
+Episodes start at a random deathmatch start of the map (Doom's `-deathmatch` spawn, chosen by the engine seed)
+followed by an unrecorded warm-up walk of random length, so episodes on the same map begin at different places.
+God mode keeps the walker alive on damaging floors. The default validation split uses held-out episodes on the
+training maps plus one map never seen in training (HELDOUT_MAPS).
+
+Usage:
+    python -m data.sample_world --out_dir data/sample/raw --seed 0
+"""
+import argparse
+import contextlib
+import dataclasses
+import json
+import multiprocessing
+import os
+import struct
+import time
+import zlib
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+HZ = 35  # Doom's fixed tic rate; we record every tic.
+BUTTON_NAMES = ("MOVE_FORWARD", "MOVE_BACKWARD", "TURN_LEFT", "TURN_RIGHT", "USE")
+# Maps with enough light, room to walk and no level exit near the spawn points; MAP18 is never used for training.
+TRAIN_MAPS = ("MAP01", "MAP04", "MAP05", "MAP09", "MAP10", "MAP12", "MAP13", "MAP15")
+HELDOUT_MAPS = ("MAP18",)
+MAX_STEP = 30.0  # map units per tic; Doom caps momentum here, so a longer step is a teleport
+GENERATOR_VERSION = 1  # bump when a change in this file changes the generated data
+SIDECAR_NAME = "sample_world.json"
+
+# Macro actions of the explorer: which buttons each one holds (order of BUTTON_NAMES).
+_ACTIONS = {
+    "forward": (1, 0, 0, 0, 0),
+    "forward_left": (1, 0, 1, 0, 0),
+    "forward_right": (1, 0, 0, 1, 0),
+    "left": (0, 0, 1, 0, 0),
+    "right": (0, 0, 0, 1, 0),
+    "backward": (0, 1, 0, 0, 0),
+    "use": (1, 0, 0, 0, 1),
+}
+_FORWARD_ACTIONS = ("forward", "forward_left", "forward_right")
+
+
+@dataclass
+class WorldConfig:
+    """Rendering and explorer-policy settings. Depth thresholds are in depth-buffer units (about 7 map units each)."""
+
+    frame_size: int = 64  # output frames are frame_size x frame_size RGB
+    walk_speed: float = 12.5  # forward/backward input while a move button is held (Doom's walk is 25)
+    turn_speed: float = 1.75  # degrees per tic while a turn button is held (Doom's turn is 3.5)
+    warmup_min_tics: int = 35  # unrecorded random-length walk before recording (the player is frozen for
+    warmup_max_tics: int = 400  # the first few tics of an episode)
+    near_depth: int = 7  # obstacle closer than this straight ahead: turn in place ...
+    clear_depth: int = 24  # ... until the way ahead is free at least this far
+    caution_depth: int = 16  # closer than this: curve away while walking
+    stuck_window: int = 12  # tics of forward motion over which we check progress
+    stuck_distance: float = 10.0  # map units; less progress than this over the window means stuck
+    use_prob: float = 0.5  # chance to press USE (open a door) when stuck
+    use_wait_tics: int = 30  # keep pushing forward this long after USE while a door opens
+    forward_weight: float = 0.58  # weights of the macro actions sampled when a hold expires
+    curve_weight: float = 0.25
+    turn_weight: float = 0.12
+    backward_weight: float = 0.05
+    open_side_prob: float = 0.7  # chance that a random turn goes towards the more open side
+
+    def __post_init__(self):
+        if self.frame_size < 8:
+            raise ValueError(f"WorldConfig.frame_size must be >= 8, got {self.frame_size}")
+        if not 0 < self.near_depth < self.caution_depth <= self.clear_depth:
+            raise ValueError("WorldConfig needs 0 < near_depth < caution_depth <= clear_depth")
+
+
+def _hold(rng: np.random.Generator, lo: int, hi: int) -> int:
+    return int(rng.integers(lo, hi + 1))
+
+
+class ExplorerPolicy:
+    """Sticky-action walker that prefers moving forward and steers away from near walls using the depth buffer.
+
+    Call it once per tic with the depth buffer (H, W) uint8 (larger = farther) and the player's (x, y); it returns
+    the buttons to hold for that tic as a tuple of 0/1 in BUTTON_NAMES order.
+    """
+
+    def __init__(self, cfg: WorldConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+        self.action = "forward"
+        self.hold = _hold(rng, 10, 40)
+        self.avoid_side: Optional[str] = None  # turn direction kept while avoiding, so we do not oscillate
+        self.forward_xy = deque(maxlen=cfg.stuck_window)
+        self.just_used = False
+        self.spin_tics = 0  # tics spent turning away from walls without finding an opening
+        self.trapped_tics = int(360 / cfg.turn_speed)  # a full turn without an opening: try USE (a closed door?)
+        self.turn_around_tics = (int(100 / cfg.turn_speed), int(180 / cfg.turn_speed))
+
+    def _depth_features(self, depth_HW: np.ndarray):
+        H, W = depth_HW.shape
+        band = depth_HW[int(H * 0.42): int(H * 0.58)]  # rows around the horizon: walls, not floor or ceiling
+        c0, c1 = int(W * 0.375), int(W * 0.625)
+        ahead = int(band[:, c0:c1].min())
+        left, right = float(band[:, :c0].mean()), float(band[:, c1:].mean())
+        return ahead, ("left" if left >= right else "right")
+
+    def _start(self, action: str, hold: int):
+        self.action, self.hold = action, hold
+        self.forward_xy.clear()
+
+    def _random_side(self, open_side: str) -> str:
+        if self.rng.random() < self.cfg.open_side_prob:
+            return open_side
+        return "left" if open_side == "right" else "right"
+
+    def _sample_action(self, open_side: str):
+        cfg, rng = self.cfg, self.rng
+        w = np.array([cfg.forward_weight, cfg.curve_weight, cfg.turn_weight, cfg.backward_weight])
+        kind = rng.choice(4, p=w / w.sum())
+        if kind == 0:
+            self._start("forward", _hold(rng, 20, 80))
+        elif kind == 1:
+            self._start("forward_" + self._random_side(open_side), _hold(rng, 8, 35))
+        elif kind == 2:
+            self._start(self._random_side(open_side), _hold(rng, 6, 30))
+        else:
+            self._start("backward", _hold(rng, 6, 20))
+
+    def _stuck(self, xy) -> bool:
+        if self.action not in _FORWARD_ACTIONS:
+            return False
+        self.forward_xy.append(xy)
+        if len(self.forward_xy) < self.forward_xy.maxlen:
+            return False
+        (x0, y0), (x1, y1) = self.forward_xy[0], self.forward_xy[-1]
+        return np.hypot(x1 - x0, y1 - y0) < self.cfg.stuck_distance
+
+    def __call__(self, depth_HW: np.ndarray, xy) -> tuple:
+        cfg, rng = self.cfg, self.rng
+        ahead, open_side = self._depth_features(depth_HW)
+        self.hold -= 1
+        if self.action == "turn_around":
+            if self.hold <= 0:
+                self._start("forward", _hold(rng, 20, 60))
+        elif self.action == "use":
+            # USE was pressed on the first tic; keep pushing forward while a door (if any) opens.
+            if self.hold <= 0:
+                self._start("forward", _hold(rng, 10, 30))
+            return _ACTIONS["forward"]
+        elif self.action == "avoid":
+            # Keep turning until the view is open, not merely until the wall leaves the centre.
+            self.spin_tics += 1
+            if ahead >= cfg.clear_depth:
+                self._start("forward", _hold(rng, 20, 60))
+            elif self.spin_tics > self.trapped_tics:  # walls all around: maybe a closed door
+                self._start("use", cfg.use_wait_tics)
+                return _ACTIONS["use"]
+        elif self._stuck(xy):
+            if not self.just_used and rng.random() < cfg.use_prob:
+                self._start("use", cfg.use_wait_tics)
+                self.just_used = True
+                return _ACTIONS["use"]
+            self.just_used = False
+            self._start("turn_around", _hold(rng, *self.turn_around_tics))  # 100-180 degrees
+            self.avoid_side = open_side
+        elif ahead < cfg.near_depth:
+            self.avoid_side, self.spin_tics = open_side, 0
+            self._start("avoid", 0)
+        elif ahead < cfg.caution_depth and self.action in _FORWARD_ACTIONS:
+            # Curve away early, keeping the side once chosen so the walker does not zig-zag into the wall.
+            if self.action == "forward" or self.avoid_side is None:
+                self.avoid_side = open_side
+            if self.action != "forward_" + self.avoid_side:
+                self._start("forward_" + self.avoid_side, _hold(rng, 6, 16))
+        elif self.hold <= 0:
+            self.avoid_side = None
+            self._sample_action(open_side)
+        if self.action in ("turn_around", "avoid"):
+            return _ACTIONS[self.avoid_side]
+        return _ACTIONS[self.action]
+
+
+def _wad_path() -> str:
+    import vizdoom as vzd  # imported here so `import data.sample_world` works without the optional dependency
+
+    return os.path.join(os.path.dirname(vzd.__file__), "freedoom2.wad")
+
+
+def wad_maps(wad_path: str) -> list:
+    """Names of the maps (MAPxx lumps) in a Doom WAD file, read from its lump directory."""
+    with open(wad_path, "rb") as f:
+        magic, num_lumps, dir_offset = struct.unpack("<4sii", f.read(12))
+        if magic not in (b"IWAD", b"PWAD"):
+            raise ValueError(f"{wad_path}: not a Doom WAD file")
+        f.seek(dir_offset)
+        directory = f.read(16 * num_lumps)
+    names = [directory[i + 8: i + 16].rstrip(b"\0").decode("ascii", "replace") for i in range(0, len(directory), 16)]
+    return sorted(n for n in names if len(n) == 5 and n.startswith("MAP") and n[3:].isdigit())
+
+
+def check_maps(maps: Sequence[str]):
+    """Raise a clear error for a map that freedoom2.wad lacks (ViZDoom would hang on it)."""
+    wad = _wad_path()
+    known = wad_maps(wad)
+    unknown = [m for m in maps if m not in known]
+    if unknown or not maps:
+        raise ValueError(f"unknown map(s) {unknown or '(none given)'}: {wad} has {known[0]}..{known[-1]}")
+
+
+def make_game(map_name: str, cfg: WorldConfig):
+    """A headless ViZDoom game on `map_name` of the bundled freedoom2.wad: no monsters, HUD, weapon or sound."""
+    import vizdoom as vzd
+
+    check_maps([map_name])
+    game = vzd.DoomGame()
+    game.set_doom_game_path(_wad_path())
+    game.set_doom_map(map_name)
+    game.set_screen_resolution(vzd.ScreenResolution.RES_160X120)
+    game.set_screen_format(vzd.ScreenFormat.RGB24)
+    game.set_depth_buffer_enabled(True)
+    game.set_render_hud(False)
+    game.set_render_crosshair(False)
+    game.set_render_weapon(False)
+    game.set_render_messages(False)
+    game.set_render_screen_flashes(False)
+    game.set_window_visible(False)
+    game.set_sound_enabled(False)
+    game.set_mode(vzd.Mode.PLAYER)
+    game.set_available_buttons(
+        [vzd.Button.MOVE_FORWARD_BACKWARD_DELTA, vzd.Button.TURN_LEFT_RIGHT_DELTA, vzd.Button.USE])
+    game.set_available_game_variables(
+        [vzd.GameVariable.POSITION_X, vzd.GameVariable.POSITION_Y, vzd.GameVariable.ANGLE])
+    game.set_episode_timeout(0)
+    # -deathmatch: random spawn spot per episode seed (and no monsters); cheats allow god mode.
+    game.add_game_args("-deathmatch -nomonsters +sv_cheats 1 +cl_showsecretmessage 0")
+    try:
+        game.init()
+    except Exception as e:  # ViZDoom raises its own types; name the map in the message
+        raise RuntimeError(f"ViZDoom could not start map {map_name!r} of freedoom2.wad: {e}") from e
+    return game
+
+
+def preprocess_frame(screen_HWC: np.ndarray, size: int) -> np.ndarray:
+    """Center-crop an (H, W, 3) uint8 screen to (H, H) and resize to (size, size, 3) uint8 with an area filter."""
+    H, W, _ = screen_HWC.shape
+    x0 = (W - H) // 2
+    crop = np.ascontiguousarray(screen_HWC[:, x0: x0 + H])
+    return np.asarray(Image.fromarray(crop).resize((size, size), Image.Resampling.BOX))
+
+
+def driving_command(poses_N3: np.ndarray, hz: float) -> np.ndarray:
+    """(linear, angular) velocity from consecutive poses: (N+1, 3) [x, y, degrees] -> (N, 2) float32.
+
+    Row t is the forward difference from pose t to pose t+1: displacement along the heading at t in map units/s,
+    and heading change in rad/s (counter-clockwise positive).
+    """
+    poses = poses_N3.astype(np.float64)
+    dxy = np.diff(poses[:, :2], axis=0)
+    heading = np.deg2rad(poses[:-1, 2])
+    linear = (dxy[:, 0] * np.cos(heading) + dxy[:, 1] * np.sin(heading)) * hz
+    dtheta = (np.diff(poses[:, 2]) + 180.0) % 360.0 - 180.0
+    angular = np.deg2rad(dtheta) * hz
+    return np.stack([linear, angular], axis=1).astype(np.float32)
+
+
+def engine_action(buttons, cfg: WorldConfig) -> list:
+    """0/1 buttons in BUTTON_NAMES order -> ViZDoom inputs [forward speed, turn (degrees, right positive), use]."""
+    forward, backward, left, right, use = buttons
+    return [(forward - backward) * cfg.walk_speed, (right - left) * cfg.turn_speed, use]
+
+
+def _is_cut(pose0, pose1, buttons, cfg: WorldConfig) -> bool:
+    """True when pose0 -> pose1 is no walking step: a teleporter moved the player or set its heading."""
+    step = np.hypot(pose1[0] - pose0[0], pose1[1] - pose0[1])
+    turn = (pose1[2] - pose0[2] + 180.0) % 360.0 - 180.0
+    expected_turn = (buttons[2] - buttons[3]) * cfg.turn_speed
+    return step > MAX_STEP or abs(turn - expected_turn) > 1.0
+
+
+def run_episode(game, episode_len: int, seed: int, cfg: WorldConfig) -> dict:
+    """Play one episode on an initialised game.
+
+    Returns frames (N, S, S, 3) uint8, buttons (N, 5) float32, driving_command (N, 2) float32 and poses (N, 3)
+    float32, with N = episode_len, or fewer when the level ends or a teleporter cuts the walk (the episode stops
+    before the jump, so every driving command is a real walking step).
+    """
+    rng = np.random.default_rng(seed)
+    game.set_seed(int(rng.integers(0, 2**31 - 1)))
+    game.new_episode()
+    game.send_game_command("god")
+    policy = ExplorerPolicy(cfg, rng)
+
+    for _ in range(int(rng.integers(cfg.warmup_min_tics, cfg.warmup_max_tics + 1))):
+        if game.is_episode_finished():
+            break
+        state = game.get_state()
+        game.make_action(engine_action(policy(state.depth_buffer, state.game_variables[:2]), cfg))
+
+    frames, buttons_list, poses = [], [], []
+    while not game.is_episode_finished():
+        state = game.get_state()
+        pose = tuple(float(v) for v in state.game_variables)
+        if poses and _is_cut(poses[-1], pose, buttons_list[-1], cfg):
+            break
+        poses.append(pose)
+        if len(frames) == episode_len:
+            break
+        buttons = policy(state.depth_buffer, pose[:2])
+        frames.append(preprocess_frame(state.screen_buffer, cfg.frame_size))
+        buttons_list.append(buttons)
+        game.make_action(engine_action(buttons, cfg))
+    n = len(poses) - 1  # a frame needs the next pose for its driving command
+    poses_arr = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    return {
+        "frames": np.asarray(frames[:n], dtype=np.uint8).reshape(n, cfg.frame_size, cfg.frame_size, 3),
+        "buttons": np.asarray(buttons_list[:n], dtype=np.float32).reshape(n, len(BUTTON_NAMES)),
+        "driving_command": driving_command(poses_arr, HZ) if n > 0 else np.zeros((0, 2), np.float32),
+        "poses": poses_arr[:n].astype(np.float32),
+    }
+
+
+def episode_seed(seed: int, split: str, map_name: str, episode: int) -> int:
+    """Seed of one episode; distinct (split, map, episode) give independent streams, so splits are disjoint."""
+    key = (zlib.crc32(split.encode()), zlib.crc32(map_name.encode()), episode)
+    return int(np.random.SeedSequence(seed, spawn_key=key).generate_state(1)[0])
+
+
+def _run_task(task) -> list:
+    """Worker entry point: (map_name, [(episode, seed), ...], episode_len, cfg dict) -> list of episode dicts."""
+    map_name, episodes, episode_len, cfg_dict = task
+    cfg = WorldConfig(**cfg_dict)
+    game = make_game(map_name, cfg)
+    try:
+        return [run_episode(game, episode_len, seed, cfg) for _, seed in episodes]
+    finally:
+        game.close()
+
+
+def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int, seed: int, *,
+                   split: str = "train", workers: int = 1, cfg: Optional[WorldConfig] = None,
+                   episodes_per_task: int = 6, progress: bool = True) -> dict:
+    """Generate `episodes_per_map` episodes of `episode_len` tics on each map; episodes ordered map by map.
+
+    Returns frames (N, S, S, 3) uint8, segment_ids (N,) int32 (episode index), actions_buttons (N, 5) float32,
+    actions_driving_command (N, 2) float32, poses (N, 3) float32, hz, maps (E,) per-episode map names,
+    episode_seeds (E,) and button_names. The result depends only on the arguments (not on `workers`).
+    """
+    cfg = cfg or WorldConfig()
+    if episodes_per_map < 1 or episode_len < 1 or workers < 1:
+        raise ValueError(f"episodes_per_map, episode_len and workers must be >= 1, got {episodes_per_map}, "
+                         f"{episode_len}, {workers}")
+    check_maps(maps)
+    episode_maps = [m for m in maps for _ in range(episodes_per_map)]
+    seeds = [episode_seed(seed, split, m, e) for m in maps for e in range(episodes_per_map)]
+    tasks = []
+    for m_i, m in enumerate(maps):
+        eps = [(e, seeds[m_i * episodes_per_map + e]) for e in range(episodes_per_map)]
+        for i in range(0, len(eps), episodes_per_task):
+            tasks.append((m, eps[i: i + episodes_per_task], episode_len, dataclasses.asdict(cfg)))
+
+    # Frames go straight into one preallocated buffer: the split may be several GB, so never hold it twice.
+    frames = np.empty((len(seeds) * episode_len, cfg.frame_size, cfg.frame_size, 3), dtype=np.uint8)
+    num_frames, episodes = 0, []
+    # The platform's default start method (fork on Linux: workers skip re-importing torch via `data`).
+    pool = multiprocessing.Pool(workers) if workers > 1 else contextlib.nullcontext()
+    with pool, tqdm(total=len(seeds), desc=f"sample world {split}", unit="episode", disable=not progress) as bar:
+        for result in (pool.imap(_run_task, tasks) if workers > 1 else map(_run_task, tasks)):
+            for ep in result:
+                n = len(ep["frames"])
+                frames[num_frames: num_frames + n] = ep.pop("frames")
+                num_frames += n
+                episodes.append(ep)
+            bar.update(len(result))
+
+    lengths = [len(ep["buttons"]) for ep in episodes]
+    return {
+        "frames": frames[:num_frames],
+        "segment_ids": np.repeat(np.arange(len(episodes), dtype=np.int32), lengths),
+        "actions_buttons": np.concatenate([ep["buttons"] for ep in episodes]),
+        "actions_driving_command": np.concatenate([ep["driving_command"] for ep in episodes]),
+        "poses": np.concatenate([ep["poses"] for ep in episodes]),
+        "hz": np.int32(HZ),
+        "maps": np.array(episode_maps),
+        "episode_seeds": np.array(seeds, dtype=np.uint32),
+        "button_names": np.array(BUTTON_NAMES),
+    }
+
+
+def _atomic_write(path: Path, write):
+    """Call write(file object) on a temp file next to `path`, then rename it into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def save_split(path, data: dict):
+    """Write a generate_split dict as an uncompressed .npz, atomically."""
+    _atomic_write(Path(path), lambda f: np.savez(f, **data))
+
+
+def build_sample_world(out_dir, seed: int = 0, train_maps: Sequence[str] = TRAIN_MAPS,
+                       val_maps: Sequence[str] = TRAIN_MAPS + HELDOUT_MAPS, train_episodes: int = 11,
+                       val_episodes: int = 1, episode_len: int = 2000, workers: int = 2,
+                       overwrite: bool = False, cfg: Optional[WorldConfig] = None) -> bool:
+    """Write out_dir/train.npz, out_dir/val.npz and a JSON sidecar of the parameters.
+
+    Skips the work (returns False) when both files exist and the sidecar matches the requested parameters.
+    """
+    cfg = cfg or WorldConfig()
+    out_dir = Path(out_dir)
+    params = {
+        "generator_version": GENERATOR_VERSION, "seed": seed, "episode_len": episode_len, "hz": HZ,
+        "button_names": list(BUTTON_NAMES), "config": dataclasses.asdict(cfg),
+        "train": {"maps": list(train_maps), "episodes_per_map": train_episodes},
+        "val": {"maps": list(val_maps), "episodes_per_map": val_episodes},
+    }
+    sidecar = out_dir / SIDECAR_NAME
+    outputs = [out_dir / "train.npz", out_dir / "val.npz"]
+    if not overwrite and sidecar.exists() and all(p.exists() for p in outputs):
+        try:
+            old = json.loads(sidecar.read_text())
+        except json.JSONDecodeError:
+            old = None
+        if old == params:
+            print(f"{out_dir}: sample world already generated with these parameters; skipping")
+            return False
+        print(f"{out_dir}: parameters differ from {sidecar}; regenerating")
+    sidecar.unlink(missing_ok=True)  # a partial rebuild must never look complete
+    for split, path in zip(("train", "val"), outputs):
+        t0 = time.time()
+        data = generate_split(params[split]["maps"], params[split]["episodes_per_map"], episode_len, seed,
+                              split=split, workers=workers, cfg=cfg)
+        save_split(path, data)
+        print(f"{path}: {len(data['frames'])} frames, {len(data['maps'])} episodes in {time.time() - t0:.1f}s")
+    _atomic_write(sidecar, lambda f: f.write(json.dumps(params, indent=2).encode()))
+    return True
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    pass
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=_HelpFormatter)
+    p.add_argument("--out_dir", default="data/sample/raw", help="directory for train.npz, val.npz and the sidecar")
+    p.add_argument("--seed", type=int, default=0, help="master seed; every episode's seed derives from it")
+    p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS), help="freedoom2.wad maps for training")
+    p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
+                   help="maps for validation (held-out episodes on these maps; default adds the held-out map)")
+    p.add_argument("--train_episodes", type=int, default=11, help="training episodes per training map")
+    p.add_argument("--val_episodes", type=int, default=1, help="validation episodes per validation map")
+    p.add_argument("--episode_len", type=int, default=2000, help="recorded tics (frames) per episode, 35 per second")
+    p.add_argument("--workers", type=int, default=2, help="processes generating episodes in parallel")
+    p.add_argument("--overwrite", action="store_true", help="regenerate even if matching outputs exist")
+    args = p.parse_args()
+    if min(args.train_episodes, args.val_episodes, args.episode_len, args.workers) < 1:
+        p.error("--train_episodes, --val_episodes, --episode_len and --workers must be >= 1")
+    try:
+        check_maps(args.train_maps + args.val_maps)
+    except ValueError as e:
+        p.error(str(e))
+    build_sample_world(args.out_dir, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
+                       train_episodes=args.train_episodes, val_episodes=args.val_episodes,
+                       episode_len=args.episode_len, workers=args.workers, overwrite=args.overwrite)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,253 @@
+"""The 1X challenge evaluator (FORMATS.md 5): temporally teacher-forced CE, token accuracy, LPIPS, s/frame.
+
+    ./evaluate.py --val_data_dir data/val_v1.1 --checkpoint_dir 1x-technologies/GENIE_35M
+
+Each validation window (16 frames at stride 15, non-overlapping) is predicted frame by frame from ground-truth
+prefixes with MaskGIT; the model's temporal KV cache computes the ground-truth context once and all 15 targets in
+one batched pass per MaskGIT step. The last line printed on stdout is one JSON object with loss, acc, pred_lpips
+(null with --skip_lpips), gen_time, dec_time (s per frame; null when nothing is decoded) and num_examples.
+Evaluation runs in one process on one device: launched with WORLD_SIZE > 1 it exits with an error.
+This module is also the top-level `evaluate.py` (a thin wrapper around `main`).
+"""
+import argparse
+import contextlib
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Subset
+from tqdm import tqdm
+
+from genie.config import ConfigError
+from genie.evaluation import RunningMean, factored_cross_entropy, images_to_unit_range
+from genie.sampling import UNMASK_MODES
+from genie.st_mask_git import CheckpointError, STMaskGIT
+
+logger = logging.getLogger("evaluate")
+
+DEFAULT_VAL_DIR = "data/val_v1.1"
+SAMPLE_VAL_DIR = "data/sample/val"
+DEFAULT_TOKENIZER = "data/magvit2.ckpt"
+LPIPS_CHUNK = 32  # frames per LPIPS / decoding call, bounds memory on CPU
+
+
+class EvaluationError(RuntimeError):
+    """Inputs that cannot be evaluated together (e.g. checkpoint and data of different token grids)."""
+
+
+def default_val_data_dir() -> str:
+    """data/val_v1.1, or the embedded sample world's validation split when only that exists."""
+    if not Path(DEFAULT_VAL_DIR).exists() and Path(SAMPLE_VAL_DIR).exists():
+        return SAMPLE_VAL_DIR
+    return DEFAULT_VAL_DIR
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--val_data_dir", default=None,
+                        help=f"Token dataset to evaluate on (default: {DEFAULT_VAL_DIR}, or {SAMPLE_VAL_DIR} when "
+                             f"only that exists).")
+    parser.add_argument("--checkpoint_dir", default="data/genie_model/final_checkpt",
+                        help="GENIE checkpoint directory (config.json + model.safetensors) or a Hugging Face hub id "
+                             "such as 1x-technologies/GENIE_35M.")
+    parser.add_argument("--batch_size", type=int, default=16, help="Windows per forward pass.")
+    parser.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT sampling steps per frame.")
+    parser.add_argument("--temperature", type=float, default=0.0,
+                        help="Sampling temperature (divides the logits); 0 samples greedily (argmax).")
+    parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
+                        help="Which tokens each MaskGIT step reveals: random (published default) or the most "
+                             "confident (greedy).")
+    parser.add_argument("--save_outputs_dir", default=None,
+                        help="Write the predictions as a token dataset in the generated layout: per window, "
+                             "frame 0 | predicted frames 1..T-1 | ground truth frames 1..T-1.")
+    parser.add_argument("--max_examples", type=int, default=None,
+                        help="Evaluate only the first N validation windows (keeps CPU runs short).")
+    parser.add_argument("--tokenizer_ckpt", default=None,
+                        help="MAGVIT2 tokenizer used to decode frames for LPIPS (default: the dataset metadata's "
+                             f"tokenizer_ckpt, else {DEFAULT_TOKENIZER}).")
+    parser.add_argument("--skip_lpips", action="store_true",
+                        help="Skip decoding and LPIPS (no tokenizer or LPIPS weights needed); pred_lpips and "
+                             "dec_time are reported as null.")
+    parser.add_argument("--device", default=None, help="Device, e.g. cpu or cuda:0 (default: cuda when available).")
+    parser.add_argument("--seed", type=int, default=0, help="Seed of the sampler's random numbers.")
+    parser.add_argument("--window_size", type=int, default=16, help="Frames per validation window.")
+    parser.add_argument("--stride", type=int, default=15, help="Frames between a window's frames (30 Hz / 15 = 2 Hz).")
+    args = parser.parse_args(argv)
+    for name in ("batch_size", "maskgit_steps"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1")
+    if args.max_examples is not None and args.max_examples < 1:
+        parser.error("--max_examples must be >= 1")
+    if args.temperature < 0:
+        parser.error("--temperature must be >= 0")
+    if args.window_size < 2:
+        parser.error("--window_size must be >= 2 (frame 0 is the first prompt, frames 1.. are predicted)")
+    if args.val_data_dir is None:
+        args.val_data_dir = default_val_data_dir()
+    return args
+
+
+def check_compatible(model: STMaskGIT, dataset, window_size: int) -> None:
+    """Raise EvaluationError when the checkpoint cannot model the dataset's windows."""
+    config, meta, data_dir = model.config, dataset.metadata, dataset.data_dir
+    if meta["s"] ** 2 != config.S:
+        raise EvaluationError(f"{data_dir} has {meta['s']}x{meta['s']} = {meta['s'] ** 2} tokens per frame but the "
+                              f"checkpoint expects S = {config.S} ({config.H}x{config.W})")
+    if meta["vocab_size"] != config.image_vocab_size:
+        raise EvaluationError(f"{data_dir} has vocab_size {meta['vocab_size']} but the checkpoint's "
+                              f"image_vocab_size is {config.image_vocab_size}: they come from different tokenizers")
+    if window_size > config.T:
+        raise EvaluationError(f"--window_size {window_size} is longer than the checkpoint's T = {config.T} frames")
+
+
+class FrameScorer:
+    """Decodes token frames with the MAGVIT2 tokenizer and scores predictions with AlexNet LPIPS."""
+
+    def __init__(self, tokenizer_ckpt: str, device: torch.device):
+        from magvit2 import VQModel
+        from magvit2.lpips import LPIPS
+        self.tokenizer = VQModel.from_checkpoint(tokenizer_ckpt, map_location=device).eval()
+        self.lpips = LPIPS().to(device)
+
+    def decode(self, tokens_NHW: torch.Tensor) -> torch.Tensor:
+        """(N, h, w) token ids -> uint8 images (N, H, W, 3)."""
+        return self.tokenizer.tokens_to_images(tokens_NHW)
+
+    def lpips_distances(self, images_a: torch.Tensor, images_b: torch.Tensor) -> torch.Tensor:
+        """uint8 (N, H, W, 3) pairs -> (N,) LPIPS distances, pixels scaled to [-1, 1]."""
+        return self.lpips(images_to_unit_range(images_a), images_to_unit_range(images_b))
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
+             scorer: Optional[FrameScorer] = None, outputs: Optional[list] = None) -> dict:
+    """Run the teacher-forced protocol over `loader`; return the metrics dict (the JSON line's content).
+
+    outputs: when a list, per-window frames (prompt | predictions | ground truth) are appended to it as numpy.
+    """
+    metrics = {name: RunningMean() for name in ("loss", "acc", "pred_lpips", "gen_time", "dec_time")}
+    generator = torch.Generator(device=device).manual_seed(args.seed)
+    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
+                else contextlib.nullcontext())
+    s = model.config.H
+    num_examples = 0
+    progress = tqdm(loader, desc="evaluate", unit="batch", file=sys.stderr)
+    for batch in progress:
+        x_BTHW = batch["input_ids"].view(-1, args.window_size, s, s).to(device)
+        B, T = x_BTHW.shape[:2]
+        targets_BTHW = x_BTHW[:, 1:]
+
+        _synchronize(device)
+        start = time.perf_counter()
+        with autocast:
+            samples_BTHW, logits_BVFTHW = model.teacher_forced(x_BTHW, args.maskgit_steps, args.temperature,
+                                                               args.unmask_mode, generator=generator)
+        _synchronize(device)
+        metrics["gen_time"].update(time.perf_counter() - start, B * (T - 1))
+
+        metrics["loss"].update(factored_cross_entropy(logits_BVFTHW, targets_BTHW).sum().item(), targets_BTHW.numel())
+        metrics["acc"].update((samples_BTHW == targets_BTHW).sum().item(), targets_BTHW.numel())
+        if scorer is not None:
+            score_frames(scorer, samples_BTHW.flatten(0, 1), targets_BTHW.flatten(0, 1), metrics, device)
+        if outputs is not None:
+            outputs.append(torch.cat([x_BTHW[:, :1], samples_BTHW, targets_BTHW], dim=1).cpu().numpy())
+        num_examples += B
+        progress.set_postfix({name: f"{m.mean:.4g}" for name, m in metrics.items() if m.mean is not None})
+
+    result = {name: metrics[name].mean for name in ("loss", "acc", "pred_lpips", "gen_time", "dec_time")}
+    result["num_examples"] = num_examples
+    return result
+
+
+def score_frames(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tensor, metrics: dict,
+                 device: torch.device) -> None:
+    """Decode predicted and ground-truth frames (timing the predictions' decoding) and add their LPIPS."""
+    for a in range(0, len(pred_NHW), LPIPS_CHUNK):
+        _synchronize(device)
+        start = time.perf_counter()
+        pred_images = scorer.decode(pred_NHW[a:a + LPIPS_CHUNK])
+        _synchronize(device)
+        metrics["dec_time"].update(time.perf_counter() - start, len(pred_images))
+        gt_images = scorer.decode(gt_NHW[a:a + LPIPS_CHUNK])
+        metrics["pred_lpips"].update(scorer.lpips_distances(pred_images, gt_images).sum().item(), len(pred_images))
+
+
+def save_outputs(out_dir: str, windows: list, dataset, window_size: int) -> None:
+    """Write evaluated windows in the generated layout (FORMATS.md 1), one segment id per window."""
+    from data import write_token_dataset
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        meta_path = out / "metadata.json"
+        previous = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        if "num_prompt_frames" not in previous:
+            raise EvaluationError(f"--save_outputs_dir {out} exists and does not hold earlier outputs (no "
+                                  f"num_prompt_frames in its metadata.json); choose a new or empty directory")
+    video_WFHW = np.concatenate(windows)
+    frames_per_window = video_WFHW.shape[1]
+    segment_ids = np.repeat(np.arange(len(video_WFHW), dtype=np.int32), frames_per_window)
+    keep = {k: v for k, v in dataset.metadata.items() if k in ("token_dtype", "vocab_size", "hz", "tokenizer_ckpt")}
+    write_token_dataset(out, video_WFHW.reshape(-1, *video_WFHW.shape[2:]), segment_ids=segment_ids,
+                        metadata={**keep, "num_prompt_frames": 1, "window_size": window_size,
+                                  "num_examples": len(video_WFHW)}, overwrite=True)
+
+
+def run(args: argparse.Namespace) -> dict:
+    from data import RawTokenDataset
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    if world_size > 1:
+        raise EvaluationError(f"evaluation runs in a single process, but WORLD_SIZE={world_size}: launch it with "
+                              f"plain `python evaluate.py` (not torchrun / accelerate launch with several processes)")
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    torch.manual_seed(args.seed)
+
+    model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device).eval()
+    dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
+                              filter_overlaps=True)
+    check_compatible(model, dataset, args.window_size)
+    num_windows = len(dataset) if args.max_examples is None else min(args.max_examples, len(dataset))
+    loader = DataLoader(Subset(dataset, range(num_windows)), batch_size=args.batch_size, shuffle=False)
+    logger.info("evaluating %d windows of %s with %s on %s", num_windows, args.val_data_dir, args.checkpoint_dir,
+                device)
+
+    scorer = None
+    if not args.skip_lpips:
+        tokenizer_ckpt = args.tokenizer_ckpt or dataset.metadata.get("tokenizer_ckpt") or DEFAULT_TOKENIZER
+        try:
+            scorer = FrameScorer(tokenizer_ckpt, device)
+        except (FileNotFoundError, ValueError) as e:  # missing tokenizer / LPIPS weights, unreadable checkpoint
+            raise EvaluationError(f"cannot set up decoding + LPIPS: {e}\nPass --skip_lpips to evaluate without "
+                                  f"decoding frames.") from None
+    outputs = [] if args.save_outputs_dir else None
+    with torch.no_grad():
+        result = evaluate(model, loader, args, device, scorer, outputs)
+    if outputs is not None:
+        save_outputs(args.save_outputs_dir, outputs, dataset, args.window_size)
+    return result
+
+
+def main(argv=None) -> int:
+    from data import TokenDatasetError
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    args = parse_args(argv)
+    try:
+        result = run(args)
+    except (EvaluationError, TokenDatasetError, ConfigError, CheckpointError, FileNotFoundError,
+            NotADirectoryError) as e:
+        print(f"evaluate.py: error: {e}", file=sys.stderr)
+        return 1
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

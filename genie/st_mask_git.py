@@ -1,0 +1,369 @@
+"""STMaskGIT: the GENIE dynamics model, loadable from the published GENIE_35M / GENIE_138M checkpoints.
+
+Token ids (B, T, H, W) -> factored logits. Parameter names, shapes and math follow FORMATS.md 3 exactly.
+Inference entry points:
+- `generate`: autoregressive frames after a prompt, MaskGIT within each frame, temporal KV cache across frames.
+- `teacher_forced`: the challenge protocol (FORMATS.md 5): every frame t = 1..T-1 predicted from ground truth
+  frames < t; the ground-truth context is computed once, all targets together in one pass per MaskGIT step.
+Both take `use_cache=False` for the straightforward full recomputation (the reference they are tested against).
+"""
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Tuple, Union
+
+import safetensors.torch
+import torch
+from einops import rearrange
+from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
+from torch import nn
+
+from genie.config import GenieConfig, load_json
+from genie.evaluation import factored_argmax_correct, factored_cross_entropy
+from genie.factorization import factorize_token_ids
+from genie.sampling import maskgit_sample
+from genie.st_transformer import STTransformerDecoder, TemporalKVCache
+
+CONFIG_NAME = "config.json"
+WEIGHTS_NAME = "model.safetensors"
+MUP_BASE_D_MODEL = 256  # the published muP base shape (set_mup_shapes hard-codes d_model 256)
+
+
+class CheckpointError(ValueError):
+    """A checkpoint whose files or weights do not match what the model expects."""
+
+
+class FactorizedEmbedding(nn.Module):
+    """A token's embedding is the sum of its factors' embeddings; the mask token has its own embedding."""
+
+    def __init__(self, factored_vocab_size: int, num_factored_vocabs: int, d_model: int, mask_token_id: int):
+        super().__init__()
+        self.factored_vocab_size = factored_vocab_size
+        self.num_factored_vocabs = num_factored_vocabs
+        self.mask_token_id = mask_token_id
+        self.factored_embeds = nn.ModuleList([nn.Embedding(factored_vocab_size, d_model)
+                                              for _ in range(num_factored_vocabs)])
+        self.mask_token_embed = nn.Parameter(torch.zeros(1, d_model))
+
+    def forward(self, token_ids: torch.Tensor) -> torch.Tensor:
+        """(...) token ids in [0, image_vocab_size] (the last is the mask token) -> (..., d_model)."""
+        is_mask = token_ids == self.mask_token_id
+        factors = factorize_token_ids(token_ids.masked_fill(is_mask, 0), self.num_factored_vocabs,
+                                      self.factored_vocab_size).unbind(-1)
+        embeds = self.factored_embeds[0](factors[0])
+        for embed, factor in zip(self.factored_embeds[1:], factors[1:]):
+            embeds = embeds + embed(factor)
+        return torch.where(is_mask.unsqueeze(-1), self.mask_token_embed.to(embeds.dtype), embeds)
+
+
+@dataclass
+class STMaskGITOutput:
+    loss: torch.Tensor  # factored CE summed over factors, mean over the masked tokens of frames 1..T-1
+    acc: torch.Tensor  # argmax accuracy (all factors right) over the same tokens
+    logits: torch.Tensor  # (B, F*V, T, H, W); channel f*V + v is factor f, value v
+
+
+class STMaskGIT(nn.Module, PyTorchModelHubMixin):
+    def __init__(self, config: GenieConfig):
+        super().__init__()
+        self.config = config
+        self.h = self.w = config.H
+        self.mask_token_id = config.mask_token_id
+        self.decoder = STTransformerDecoder(config)
+        self.pos_embed_TSC = nn.Parameter(torch.zeros(1, config.T, config.S, config.d_model))
+        self.token_embed = FactorizedEmbedding(config.factored_vocab_size, config.num_factored_vocabs,
+                                               config.d_model, config.mask_token_id)
+        self.out_x_proj = nn.Linear(config.d_model, config.factored_vocab_size * config.num_factored_vocabs)
+        # muP readout (mup.MuReadout with output_mult 1): the input is divided by d_model / base d_model
+        self.readout_width_mult = config.d_model / MUP_BASE_D_MODEL if config.use_mup else None
+
+    def init_weights(self) -> None:
+        """Normal(0, 0.02) for Linear and Embedding weights, zero biases (as published)."""
+        for module in self.modules():
+            if isinstance(module, (nn.Linear, nn.Embedding)):
+                nn.init.normal_(module.weight, mean=0.0, std=0.02)
+            if isinstance(module, nn.Linear) and module.bias is not None:
+                nn.init.zeros_(module.bias)
+
+    # ---------------------------------------------------------------- core computation
+    def _check_tokens(self, x_BTHW: torch.Tensor, first_frame: int = 0) -> None:
+        if x_BTHW.dim() != 4 or x_BTHW.shape[2] * x_BTHW.shape[3] != self.config.S:
+            raise ValueError(f"expected token ids of shape (B, T, H, W) with H*W = S = {self.config.S}, "
+                             f"got {tuple(x_BTHW.shape)}")
+        if first_frame + x_BTHW.shape[1] > self.config.T:
+            raise ValueError(f"frames {first_frame}..{first_frame + x_BTHW.shape[1] - 1} requested, but the model "
+                             f"has position embeddings for T = {self.config.T} frames only")
+        if x_BTHW.is_floating_point():
+            raise ValueError(f"token ids must be integers, got {x_BTHW.dtype}")
+        if ((x_BTHW < 0) | (x_BTHW > self.mask_token_id)).any():
+            raise ValueError(f"token ids must be in [0, {self.config.image_vocab_size}) or the mask token "
+                             f"{self.mask_token_id}; got values in [{x_BTHW.min().item()}, {x_BTHW.max().item()}]")
+
+    def _embed(self, x_BTS: torch.Tensor, first_frame: int) -> torch.Tensor:
+        """Token ids of frames first_frame.. (B, T, S) -> input embeddings (B, T, S, C)."""
+        T = x_BTS.shape[1]
+        return self.token_embed(x_BTS) + self.pos_embed_TSC[:, first_frame:first_frame + T]
+
+    def _readout(self, x_BTSC: torch.Tensor) -> torch.Tensor:
+        if self.readout_width_mult is not None:
+            x_BTSC = x_BTSC / self.readout_width_mult
+        return self.out_x_proj(x_BTSC)
+
+    def _factored(self, logits_BTSC: torch.Tensor) -> torch.Tensor:
+        """(B, T, S, F*V) -> factored (B, V, F, T, H, W)."""
+        return rearrange(logits_BTSC, "B T (H W) (F V) -> B V F T H W", H=self.h, F=self.config.num_factored_vocabs)
+
+    def compute_logits(self, x_BTHW: torch.Tensor) -> torch.Tensor:
+        """Token ids of frames 0..T-1 (B, T, H, W), T <= config.T -> logits (B, F*V, T, H, W)."""
+        self._check_tokens(x_BTHW)
+        x_BTSC = self.decoder(self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), 0))
+        return rearrange(self._readout(x_BTSC), "B T (H W) C -> B C T H W", H=self.h)
+
+    def forward(self, input_ids: torch.Tensor, labels: torch.Tensor, **kwargs) -> STMaskGITOutput:
+        """input_ids, labels: (B, T*H*W) flattened token ids; input_ids hold the mask token where corrupted.
+
+        Other batch entries (attention_mask, actions, ...) are accepted and not used by this video-only model.
+        """
+        S = self.config.S
+        if input_ids.dim() != 2 or input_ids.shape[1] % S or input_ids.shape != labels.shape:
+            raise ValueError(f"input_ids and labels must both be (B, T*{S}); got {tuple(input_ids.shape)} and "
+                             f"{tuple(labels.shape)}")
+        x_BTHW = rearrange(input_ids, "B (T H W) -> B T H W", H=self.h, W=self.w)
+        labels_BTHW = rearrange(labels, "B (T H W) -> B T H W", H=self.h, W=self.w)
+        logits_BCTHW = self.compute_logits(x_BTHW)
+
+        # frame 0 is always given; only the masked tokens of frames 1.. count
+        factored_BVFTHW = rearrange(logits_BCTHW[:, :, 1:], "B (F V) T H W -> B V F T H W",
+                                    F=self.config.num_factored_vocabs)
+        relevant_BTHW = x_BTHW[:, 1:] == self.mask_token_id
+        num_relevant = relevant_BTHW.sum().clamp(min=1)
+        loss_BTHW = factored_cross_entropy(factored_BVFTHW, labels_BTHW[:, 1:])
+        correct_BTHW = factored_argmax_correct(factored_BVFTHW, labels_BTHW[:, 1:])
+        loss = (loss_BTHW * relevant_BTHW).sum() / num_relevant
+        acc = (correct_BTHW & relevant_BTHW).sum().float() / num_relevant
+        return STMaskGITOutput(loss=loss, acc=acc, logits=logits_BCTHW)
+
+    # ---------------------------------------------------------------- cached inference
+    def new_kv_cache(self, capacity: int) -> TemporalKVCache:
+        """An empty temporal KV cache with room for `capacity` frames."""
+        return TemporalKVCache(self.config.num_layers, capacity)
+
+    def forward_frames(self, x_BTHW: torch.Tensor, first_frame: int, kv_cache: TemporalKVCache,
+                       targets: bool = False, commit: int = 0, readout: bool = True) -> Optional[torch.Tensor]:
+        """Run T frames at absolute positions first_frame.. against the frames in kv_cache.
+
+        targets=False: the frames follow the cached ones (first_frame == kv_cache.length) and attend to them and
+            causally to each other; `commit` of them (from the first) are then kept in the cache.
+        targets=True: teacher-forced targets: frame first_frame + i attends to cached frames < first_frame + i and
+            to itself (the cache holds frames 0..T-1 and first_frame is 1).
+        Returns factored logits (B, V, F, T, H, W), or None when readout is False.
+        """
+        self._check_tokens(x_BTHW, first_frame)
+        T = x_BTHW.shape[1]
+        if targets and (first_frame != 1 or kv_cache.length != T):
+            raise ValueError(f"teacher-forced targets 1..{T} need a cache of frames 0..{T - 1} and first_frame 1; "
+                             f"got {kv_cache.length} cached frames and first_frame {first_frame}")
+        if not targets and first_frame != kv_cache.length:
+            raise ValueError(f"frames starting at {first_frame} must follow the {kv_cache.length} cached frames")
+        return self._run_frames(x_BTHW, first_frame, kv_cache, targets, commit, readout)
+
+    def _run_frames(self, x_BTHW, first_frame, kv_cache, targets=False, commit=0, readout=True):
+        """forward_frames without the input checks (for ids the sampler produced: no device sync per step)."""
+        x_BTSC = self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), first_frame)
+        x_BTSC = self.decoder(x_BTSC, kv_cache, targets, kv_only=not readout and not targets)
+        kv_cache.commit(commit)
+        return self._factored(self._readout(x_BTSC)) if readout else None
+
+    @torch.no_grad()
+    def generate(self, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_steps: int = 2,
+                 temperature: float = 0.0, unmask_mode: str = "random", use_cache: bool = True,
+                 generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Autoregressively generate frames after a prompt.
+
+        prompt_BTHW: (B, T0, H, W) token ids; T0 + num_new_frames must be <= config.T.
+        With the cache each MaskGIT step costs one frame's compute (plus one pass per finished frame to append it);
+        without it every step recomputes the window, future frames masked (the published procedure).
+        Returns (tokens (B, T0 + n, H, W): prompt then generated frames,
+                 first-step factored logits of the generated frames (B, V, F, n, H, W)).
+        """
+        B, T0 = prompt_BTHW.shape[:2]
+        total = T0 + num_new_frames
+        if T0 < 1 or num_new_frames < 1:
+            raise ValueError(f"need at least one prompt frame and one new frame, got {T0} and {num_new_frames}")
+        if total > self.config.T:
+            raise ValueError(f"cannot generate up to frame {total - 1}: the model has position embeddings for "
+                             f"T = {self.config.T} frames (prompt {T0} + {num_new_frames} new > {self.config.T})")
+        self._check_tokens(prompt_BTHW)
+        tokens_BTHW = torch.cat([prompt_BTHW, torch.full_like(prompt_BTHW[:, :1], self.mask_token_id)
+                                 .expand(-1, num_new_frames, -1, -1)], dim=1)
+        if use_cache:
+            kv_cache = self.new_kv_cache(total)
+            self._run_frames(prompt_BTHW, 0, kv_cache, commit=T0, readout=False)
+        all_logits = []
+        for t in range(T0, total):
+            if use_cache:
+                def logits_fn(frame_BHW):
+                    return self._run_frames(frame_BHW.unsqueeze(1), t, kv_cache)[:, :, :, 0]
+            else:
+                def logits_fn(frame_BHW):
+                    window_BTHW = tokens_BTHW.clone()
+                    window_BTHW[:, t] = frame_BHW
+                    return rearrange(self.compute_logits(window_BTHW)[:, :, t], "B (F V) H W -> B V F H W",
+                                     F=self.config.num_factored_vocabs)
+            sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], self.mask_token_id, maskgit_steps,
+                                                      temperature, unmask_mode, generator)
+            tokens_BTHW[:, t] = sample_BHW
+            all_logits.append(logits_BVFHW)
+            if use_cache and t + 1 < total:
+                self._run_frames(sample_BHW.unsqueeze(1), t, kv_cache, commit=1, readout=False)
+        return tokens_BTHW, torch.stack(all_logits, dim=3)
+
+    @torch.no_grad()
+    def teacher_forced(self, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperature: float = 0.0,
+                       unmask_mode: str = "random", use_cache: bool = True,
+                       generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The challenge protocol: predict each frame t = 1..T-1 of a window from ground-truth frames 0..t-1.
+
+        x_BTHW: (B, T, H, W) ground-truth token ids, 2 <= T <= config.T.
+        With the cache, frames 0..T-2 are computed once and all T-1 targets go through the model together in one
+        pass per MaskGIT step (target t attends to the cached frames < t and to itself). Without it, every target
+        and every step recomputes the whole window with frames >= t masked (the published evaluator).
+        Returns (samples of frames 1..T-1 (B, T-1, H, W), first-step factored logits (B, V, F, T-1, H, W)).
+        """
+        B, T, H, W = x_BTHW.shape
+        if T < 2:
+            raise ValueError(f"teacher forcing needs windows of at least 2 frames, got {T}")
+        self._check_tokens(x_BTHW)
+        n = T - 1
+        if use_cache:
+            kv_cache = self.new_kv_cache(n)
+            self._run_frames(x_BTHW[:, :n], 0, kv_cache, commit=n, readout=False)
+
+            def logits_fn(frames_NHW):
+                frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
+                logits_BVFnHW = self._run_frames(frames_BnHW, 1, kv_cache, targets=True)
+                return rearrange(logits_BVFnHW, "B V F n H W -> (B n) V F H W")
+        else:
+            def logits_fn(frames_NHW):
+                frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
+                per_target = []
+                for t in range(1, T):
+                    window_BTHW = x_BTHW.clone()
+                    window_BTHW[:, t] = frames_BnHW[:, t - 1]
+                    window_BTHW[:, t + 1:] = self.mask_token_id
+                    per_target.append(self.compute_logits(window_BTHW)[:, :, t])
+                return rearrange(torch.stack(per_target, dim=1), "B n (F V) H W -> (B n) V F H W",
+                                 F=self.config.num_factored_vocabs)
+
+        masked_NHW = torch.full((B * n, H, W), self.mask_token_id, dtype=x_BTHW.dtype, device=x_BTHW.device)
+        samples_NHW, logits_NVFHW = maskgit_sample(logits_fn, masked_NHW, self.mask_token_id, maskgit_steps,
+                                                   temperature, unmask_mode, generator)
+        return (rearrange(samples_NHW, "(B n) H W -> B n H W", B=B),
+                rearrange(logits_NVFHW, "(B n) V F H W -> B V F n H W", B=B))
+
+    # ---------------------------------------------------------------- checkpoints
+    def load_checkpoint_state_dict(self, state_dict: dict, source: str = "state dict") -> None:
+        """Load weights, listing every missing / unexpected / wrongly shaped key in one clear error."""
+        expected = self.state_dict()
+        missing = sorted(set(expected) - set(state_dict))
+        unexpected = sorted(set(state_dict) - set(expected))
+        wrong_shape = [f"{k}: checkpoint {tuple(state_dict[k].shape)} vs model {tuple(v.shape)}"
+                       for k, v in expected.items() if k in state_dict and state_dict[k].shape != v.shape]
+        if missing or unexpected or wrong_shape:
+            problems = [f"{what} ({len(keys)}): {keys[:8]}{' ...' if len(keys) > 8 else ''}"
+                        for what, keys in (("missing keys", missing), ("unexpected keys", unexpected),
+                                           ("shape mismatches", wrong_shape)) if keys]
+            raise CheckpointError(f"{source}: weights do not match the model built from its config "
+                                  f"(qk_norm={self.config.qk_norm}, num_layers={self.config.num_layers}, "
+                                  f"d_model={self.config.d_model}): " + "; ".join(problems))
+        self.load_state_dict(state_dict)
+
+    def save_pretrained(self, save_directory: Union[str, Path], *, config=None, repo_id: Optional[str] = None,
+                        push_to_hub: bool = False, model_card_kwargs: Optional[dict] = None, **push_to_hub_kwargs):
+        """Write config.json + model.safetensors (the published layout) atomically.
+
+        A new directory is written under a temporary name and renamed; in an existing directory each file is
+        replaced atomically and other files are kept. `config` is ignored: the model's own GenieConfig is saved.
+        """
+        target = Path(save_directory)
+        if target.exists() and not target.is_dir():
+            raise NotADirectoryError(f"cannot save a checkpoint to {target}: it exists and is not a directory")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+        try:
+            self.config.save(tmp / CONFIG_NAME)
+            self._save_pretrained(tmp)
+            if target.exists():
+                for name in (WEIGHTS_NAME, CONFIG_NAME):
+                    os.replace(tmp / name, target / name)
+            else:
+                os.replace(tmp, target)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        if push_to_hub:
+            return self.push_to_hub(repo_id or target.name, model_card_kwargs=model_card_kwargs,
+                                    **push_to_hub_kwargs)
+        return None
+
+    def _save_pretrained(self, save_directory: Path) -> None:
+        state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
+        safetensors.torch.save_file(state, str(Path(save_directory) / WEIGHTS_NAME), metadata={"format": "pt"})
+
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path: Union[str, Path], *, revision: Optional[str] = None,
+                        cache_dir=None, force_download: bool = False, local_files_only: bool = False,
+                        token=None, map_location: str = "cpu", **kwargs) -> "STMaskGIT":
+        """Load a checkpoint directory (config.json + model.safetensors) or a Hugging Face hub id.
+
+        The config is parsed strictly (unknown keys are errors); the weights must match it key for key.
+        The model is returned in eval mode.
+        """
+        if kwargs:
+            raise TypeError(f"STMaskGIT.from_pretrained: unexpected arguments {sorted(kwargs)}")
+        checkpoint_dir = resolve_checkpoint_dir(pretrained_model_name_or_path, revision=revision,
+                                                cache_dir=cache_dir, force_download=force_download,
+                                                local_files_only=local_files_only, token=token)
+        config_path = checkpoint_dir / CONFIG_NAME
+        config = GenieConfig.from_dict(load_json(config_path, "GENIE config"), source=str(config_path))
+        model = cls(config)
+        weights_path = checkpoint_dir / WEIGHTS_NAME
+        try:
+            state_dict = safetensors.torch.load_file(str(weights_path), device=str(map_location))
+        except Exception as e:  # safetensors raises its own error types for truncated / non-safetensors files
+            raise CheckpointError(f"{weights_path}: cannot read safetensors weights ({e})") from None
+        model.load_checkpoint_state_dict(state_dict, source=str(weights_path))
+        return model.eval()
+
+
+def _looks_like_hub_id(name: str) -> bool:
+    parts = name.split("/")
+    return len(parts) == 2 and all(parts) and not name.startswith((".", "~")) and "\\" not in name
+
+
+def resolve_checkpoint_dir(name_or_path: Union[str, Path], revision: Optional[str] = None, cache_dir=None,
+                           force_download: bool = False, local_files_only: bool = False, token=None) -> Path:
+    """A local checkpoint directory, or the hub cache directory of a downloaded hub id; clear errors otherwise."""
+    path = Path(name_or_path)
+    if path.is_dir():
+        for name in (CONFIG_NAME, WEIGHTS_NAME):
+            if not (path / name).is_file():
+                raise FileNotFoundError(f"{path}: not a GENIE checkpoint directory ({name} is missing; expected "
+                                        f"{CONFIG_NAME} and {WEIGHTS_NAME})")
+        return path
+    if path.exists():
+        raise NotADirectoryError(f"{path}: a checkpoint must be a directory with {CONFIG_NAME} and {WEIGHTS_NAME}")
+    if not _looks_like_hub_id(str(name_or_path)):
+        raise FileNotFoundError(f"checkpoint directory not found: {path}")
+    try:
+        files = [hf_hub_download(str(name_or_path), name, revision=revision, cache_dir=cache_dir,
+                                 force_download=force_download, local_files_only=local_files_only, token=token)
+                 for name in (CONFIG_NAME, WEIGHTS_NAME)]
+    except Exception as e:  # offline, unknown repo, no access, invalid id: all end the same way for the user
+        raise FileNotFoundError(
+            f"checkpoint {name_or_path!r} is not a local directory and could not be fetched from the Hugging Face "
+            f"hub ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}). On a machine with internet, "
+            f"download it with `huggingface-cli download {name_or_path} --local-dir <dir>` and pass that "
+            f"directory instead.") from None
+    return Path(files[0]).parent

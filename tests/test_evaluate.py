@@ -1,0 +1,213 @@
+"""Challenge metrics (hand-computed values) and evaluate.py end to end on a tiny dataset and checkpoint."""
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from data import RawTokenDataset, read_metadata, write_token_dataset
+from genie import GenieConfig, STMaskGIT
+from genie.evaluate import evaluate, main
+from genie.evaluation import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
+                              token_accuracy)
+
+REPO = Path(__file__).resolve().parents[1]
+VOCAB = 64 ** 2
+JSON_KEYS = {"loss", "acc", "pred_lpips", "gen_time", "dec_time", "num_examples"}
+
+
+# ------------------------------------------------------------------ metric functions
+def test_factored_cross_entropy_hand_values():
+    logits = torch.zeros(1, 2, 2, 2)  # (B, V=2, F=2, tokens=2)
+    logits[0, 0, 0, :] = math.log(3)  # factor 0: p(0) = 3/4, p(1) = 1/4; factor 1 uniform
+    targets = torch.tensor([[3, 0]])  # 3 = f0 1 + 2 * f1 1;  0 = f0 0 + 2 * f1 0
+    ce = factored_cross_entropy(logits, targets)
+    expected = torch.tensor([[-math.log(1 / 4) - math.log(1 / 2), -math.log(3 / 4) - math.log(1 / 2)]])
+    torch.testing.assert_close(ce, expected)
+    assert factored_argmax_correct(logits, targets).tolist() == [[False, True]]
+
+
+def test_uniform_logits_give_two_ln_512():
+    ce = factored_cross_entropy(torch.zeros(2, 512, 2, 3), torch.randint(0, 2 ** 18, (2, 3)))
+    torch.testing.assert_close(ce, torch.full((2, 3), 2 * math.log(512)))
+    assert round(ce.mean().item(), 2) == 12.48
+
+
+def test_cross_entropy_shape_mismatch_is_an_error():
+    with pytest.raises(ValueError, match="do not match targets"):
+        factored_cross_entropy(torch.zeros(1, 4, 2, 3), torch.zeros(1, 4, dtype=torch.long))
+
+
+def test_token_accuracy_and_running_mean():
+    assert token_accuracy(torch.tensor([[1, 2], [3, 4]]), torch.tensor([[1, 0], [3, 4]])) == 0.75
+    with pytest.raises(ValueError, match="differ in shape"):
+        token_accuracy(torch.zeros(2), torch.zeros(3))
+    mean = RunningMean()
+    assert mean.mean is None
+    mean.update(3.0, 2)
+    mean.update(6.0, 1)
+    assert mean.mean == 3.0
+
+
+def test_images_to_unit_range():
+    images = torch.zeros(1, 2, 2, 3, dtype=torch.uint8)
+    images[0, 0, 1, 2] = 255
+    images[0, 1, 0, 0] = 51
+    x = images_to_unit_range(images)
+    assert x.shape == (1, 3, 2, 2)
+    assert x[0, 2, 0, 1] == 1.0 and x[0, 0, 1, 0] == pytest.approx(51 / 127.5 - 1) and x[0, 1, 1, 1] == -1.0
+
+
+# ------------------------------------------------------------------ evaluate.py
+def make_dataset(path: Path, s: int = 4, vocab: int = VOCAB, num_images: int = 120, seed: int = 0, **metadata):
+    rng = np.random.default_rng(seed)
+    video = rng.integers(0, vocab, size=(num_images, s, s))
+    segment_ids = np.repeat(np.arange(3), -(-num_images // 3))[:num_images]
+    write_token_dataset(path, video, segment_ids=segment_ids, metadata={"vocab_size": vocab, **metadata})
+    return path
+
+
+def make_checkpoint(path: Path, **overrides):
+    kwargs = dict(num_layers=2, num_heads=4, d_model=32, T=8, S=16, image_vocab_size=VOCAB, num_prompt_frames=2)
+    kwargs.update(overrides)
+    torch.manual_seed(0)
+    model = STMaskGIT(GenieConfig(**kwargs))
+    model.init_weights()
+    with torch.no_grad():
+        model.out_x_proj.weight.normal_(0, 1.0)  # confident, position-dependent predictions
+        model.pos_embed_TSC.normal_(0, 1.0)
+    model.save_pretrained(path)
+    return path
+
+
+def eval_args(data, ckpt, *extra):
+    return ["--val_data_dir", str(data), "--checkpoint_dir", str(ckpt), "--window_size", "8", "--stride", "3",
+            "--batch_size", "3", "--device", "cpu", *extra]
+
+
+def last_json_line(text: str) -> dict:
+    return json.loads(text.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    return SimpleNamespace(data=make_dataset(root / "val"), ckpt=make_checkpoint(root / "ckpt"), root=root)
+
+
+def test_json_line_metrics_and_saved_outputs(tiny, capsys):
+    out_dir = tiny.root / "outputs"
+    assert main(eval_args(tiny.data, tiny.ckpt, "--skip_lpips", "--max_examples", "5", "--save_outputs_dir",
+                          str(out_dir))) == 0
+    result = last_json_line(capsys.readouterr().out)
+    assert set(result) == JSON_KEYS
+    assert result["num_examples"] == 5
+    assert result["pred_lpips"] is None and result["dec_time"] is None
+    assert result["gen_time"] > 0
+
+    # CE of the first-step logits, recomputed here with the public model API (independent of the RNG)
+    dataset = RawTokenDataset(tiny.data, window_size=8, stride=3, filter_overlaps=True)
+    windows = torch.stack([dataset[i]["input_ids"].view(8, 4, 4) for i in range(5)])
+    model = STMaskGIT.from_pretrained(tiny.ckpt)
+    _, logits = model.teacher_forced(windows, maskgit_steps=2)
+    assert result["loss"] == pytest.approx(factored_cross_entropy(logits, windows[:, 1:]).mean().item(), rel=1e-5)
+
+    # saved layout: per window frame 0 | predictions 1..7 | ground truth 1..7; acc matches the saved predictions
+    meta = read_metadata(out_dir)
+    assert (meta["num_prompt_frames"], meta["window_size"], meta["num_images"]) == (1, 8, 5 * 15)
+    video = np.fromfile(out_dir / "video.bin", dtype=np.uint32).reshape(5, 15, 4, 4).astype(np.int64)
+    assert np.array_equal(video[:, 0], windows[:, 0].numpy())
+    assert np.array_equal(video[:, 8:], windows[:, 1:].numpy())
+    assert (video[:, 1:8] < VOCAB).all()
+    assert result["acc"] == pytest.approx((video[:, 1:8] == video[:, 8:]).mean())
+    assert RawTokenDataset(out_dir, window_size=15, stride=1, filter_overlaps=True).valid_start_inds.tolist() == \
+        [15 * i for i in range(5)]
+
+
+class StubScorer:
+    """Decodes token t to a flat image of value t % 256; distance = mean absolute pixel difference / 255."""
+
+    def decode(self, tokens_NHW):
+        return (tokens_NHW % 256).to(torch.uint8)[:, :, :, None].expand(-1, -1, -1, 3).repeat_interleave(8, 1)
+
+    def lpips_distances(self, a, b):
+        return (a.float() - b.float()).abs().mean(dim=(1, 2, 3)) / 255
+
+
+def test_lpips_and_decode_time_with_a_stub_scorer(tiny):
+    dataset = RawTokenDataset(tiny.data, window_size=8, stride=3, filter_overlaps=True)
+    model = STMaskGIT.from_pretrained(tiny.ckpt)
+    args = SimpleNamespace(window_size=8, maskgit_steps=2, temperature=0.0, unmask_mode="random", seed=0)
+    outputs = []
+    result = evaluate(model, DataLoader(dataset, batch_size=4), args, torch.device("cpu"), StubScorer(), outputs)
+    video = torch.from_numpy(np.concatenate(outputs))
+    expected = ((video[:, 1:8] % 256) - (video[:, 8:] % 256)).abs().float().mean(dim=(2, 3)) / 255
+    assert result["pred_lpips"] == pytest.approx(expected.mean().item(), rel=1e-5)
+    assert result["dec_time"] > 0 and result["num_examples"] == len(dataset)
+
+
+def test_real_tokenizer_and_lpips(tiny, capsys):
+    from magvit2 import VQConfig, VQModel
+    from magvit2.lpips import LPIPS, LPIPSWeightsNotFound
+    try:
+        LPIPS()
+    except LPIPSWeightsNotFound:
+        pytest.skip("no LPIPS weights on this machine (python -m magvit2.lpips_weights makes them)")
+    torch.manual_seed(0)
+    tokenizer = VQModel(VQConfig(z_channels=12, codebook_size=VOCAB, base_channels=32, ch_mult=[1, 1, 1, 1],
+                                 num_res_blocks=1, resolution=32))
+    tokenizer.save_pretrained(tiny.root / "tokenizer")
+    assert main(eval_args(tiny.data, tiny.ckpt, "--max_examples", "2", "--tokenizer_ckpt",
+                          str(tiny.root / "tokenizer"))) == 0
+    result = last_json_line(capsys.readouterr().out)
+    assert result["pred_lpips"] >= 0 and result["dec_time"] > 0
+
+
+def test_evaluate_script_runs_as_executable(tiny):
+    env = {k: v for k, v in os.environ.items() if k != "WORLD_SIZE"}
+    proc = subprocess.run([sys.executable, str(REPO / "evaluate.py"), *eval_args(tiny.data, tiny.ckpt),
+                           "--skip_lpips", "--max_examples", "2"], capture_output=True, text=True, cwd=tiny.root,
+                          env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    result = last_json_line(proc.stdout)
+    assert set(result) == JSON_KEYS and result["num_examples"] == 2
+    assert os.access(REPO / "evaluate.py", os.X_OK)
+    assert (REPO / "evaluate.py").read_text().startswith("#!/usr/bin/env python")
+
+
+@pytest.mark.parametrize("case, message", [
+    ("grid", "tokens per frame"),
+    ("vocab", "vocab_size 4096"),
+    ("short_data", "needs 22 frames"),
+    ("window_vs_T", "longer than the checkpoint's T"),
+    ("no_checkpoint", "not found"),
+    ("no_tokenizer", "--skip_lpips"),
+    ("world_size", "single process"),
+])
+def test_bad_inputs_give_clear_errors(tiny, tmp_path, capsys, monkeypatch, case, message):
+    data, ckpt, extra = tiny.data, tiny.ckpt, ["--skip_lpips"]
+    if case == "grid":
+        data = make_dataset(tmp_path / "val8", s=8)
+    elif case == "vocab":
+        ckpt = make_checkpoint(tmp_path / "ckpt", image_vocab_size=32 ** 2)
+    elif case == "short_data":
+        data = make_dataset(tmp_path / "short", num_images=12)
+    elif case == "window_vs_T":
+        ckpt = make_checkpoint(tmp_path / "ckpt", T=4)
+    elif case == "no_checkpoint":
+        ckpt = tmp_path / "missing" / "final_checkpt"
+    elif case == "no_tokenizer":
+        extra = ["--tokenizer_ckpt", str(tmp_path / "nope.ckpt")]
+    elif case == "world_size":
+        monkeypatch.setenv("WORLD_SIZE", "2")
+    assert main(eval_args(data, ckpt, *extra)) == 1
+    captured = capsys.readouterr()
+    assert message in captured.err
+    assert captured.out == ""

@@ -1,0 +1,293 @@
+"""STMaskGIT: published parameter layout, an independent reference forward, loss, checkpoint round trip, errors."""
+import json
+import math
+from pathlib import Path
+
+import pytest
+import safetensors.torch
+import torch
+import torch.nn.functional as F
+
+import genie
+from genie import GenieConfig, STMaskGIT
+from genie.config import ConfigError
+from genie.st_mask_git import CheckpointError
+
+CONFIG_DIR = Path(genie.__file__).parent / "configs"
+
+
+def tiny_config(**overrides) -> GenieConfig:
+    kwargs = dict(num_layers=2, num_heads=4, d_model=32, T=4, S=16, image_vocab_size=64 ** 2, num_prompt_frames=2)
+    kwargs.update(overrides)
+    return GenieConfig(**kwargs)
+
+
+def published_state_dict(config: GenieConfig, seed: int = 0) -> dict:
+    """Random weights under the FORMATS.md 3 parameter names, written out by hand (not from the model)."""
+    g = torch.Generator().manual_seed(seed)
+    d, V, F_ = config.d_model, config.factored_vocab_size, config.num_factored_vocabs
+    hidden, hd = int(d * config.mlp_ratio), d // config.num_heads
+
+    def rnd(*shape, std=0.3):
+        return torch.randn(*shape, generator=g) * std
+
+    sd = {"pos_embed_TSC": rnd(1, config.T, config.S, d, std=1.0),
+          "token_embed.mask_token_embed": rnd(1, d, std=1.0),
+          "out_x_proj.weight": rnd(F_ * V, d), "out_x_proj.bias": rnd(F_ * V)}
+    for k in range(F_):
+        sd[f"token_embed.factored_embeds.{k}.weight"] = rnd(V, d, std=1.0)
+    for i in range(config.num_layers):
+        p = f"decoder.layers.{i}."
+        for attn in ("spatial_attn", "temporal_attn"):
+            sd[p + attn + ".qkv.weight"] = rnd(3 * d, d, std=d ** -0.5)
+            sd[p + attn + ".proj.weight"] = rnd(d, d, std=d ** -0.5)
+            sd[p + attn + ".proj.bias"] = rnd(d, std=0.1)
+            if config.qk_norm:
+                sd[p + attn + ".norm.weight"] = 1 + rnd(hd, std=0.1)
+                sd[p + attn + ".norm.bias"] = rnd(hd, std=0.1)
+        if not config.qk_norm:
+            for norm in ("norm1", "norm2"):
+                sd[p + norm + ".weight"] = 1 + rnd(d, std=0.1)
+                sd[p + norm + ".bias"] = rnd(d, std=0.1)
+        sd[p + "mlp.fc1.weight"] = rnd(hidden, d, std=d ** -0.5)
+        sd[p + "mlp.fc1.bias"] = rnd(hidden, std=0.1)
+        sd[p + "mlp.fc2.weight"] = rnd(d, hidden, std=hidden ** -0.5)
+        sd[p + "mlp.fc2.bias"] = rnd(d, std=0.1)
+    return sd
+
+
+def reference_logits(sd: dict, config: GenieConfig, x_BTHW: torch.Tensor) -> torch.Tensor:
+    """Straightforward float64 forward of the published block semantics -> logits (B, F*V, T, H, W)."""
+    sd = {k: v.double() for k, v in sd.items()}
+    B, T, H, W = x_BTHW.shape
+    S, d, nh, V = H * W, config.d_model, config.num_heads, config.factored_vocab_size
+    hd = d // nh
+    scale = 8 / hd if config.use_mup else hd ** -0.5
+
+    def layer_norm(x, w, b):
+        mu = x.mean(-1, keepdim=True)
+        var = ((x - mu) ** 2).mean(-1, keepdim=True)
+        return (x - mu) / torch.sqrt(var + 1e-5) * w + b
+
+    def attention(x_NLC, p, causal):
+        qkv = x_NLC @ sd[p + ".qkv.weight"].T
+        q, k, v = (qkv[..., i * d:(i + 1) * d].reshape(*x_NLC.shape[:2], nh, hd) for i in range(3))
+        if config.qk_norm:
+            q = layer_norm(q, sd[p + ".norm.weight"], sd[p + ".norm.bias"])
+            k = layer_norm(k, sd[p + ".norm.weight"], sd[p + ".norm.bias"])
+        scores = torch.einsum("nlhd,nmhd->nhlm", q, k) * scale
+        if causal:
+            L = x_NLC.shape[1]
+            scores = scores.masked_fill(torch.ones(L, L, dtype=torch.bool).triu(1), float("-inf"))
+        out = torch.einsum("nhlm,nmhd->nlhd", scores.softmax(-1), v).reshape(x_NLC.shape)
+        return out @ sd[p + ".proj.weight"].T + sd[p + ".proj.bias"]
+
+    ids = x_BTHW.reshape(B, T, S)
+    is_mask = ids == config.image_vocab_size
+    f0, f1 = ids % V, (ids // V) % V
+    h = sd["token_embed.factored_embeds.0.weight"][f0] + sd["token_embed.factored_embeds.1.weight"][f1]
+    h[is_mask] = sd["token_embed.mask_token_embed"][0]
+    h = h + sd["pos_embed_TSC"][0, :T]
+    for i in range(config.num_layers):
+        p = f"decoder.layers.{i}."
+        x = h.reshape(B * T, S, d)
+        normed = x if config.qk_norm else layer_norm(x, sd[p + "norm1.weight"], sd[p + "norm1.bias"])
+        x = x + attention(normed, p + "spatial_attn", causal=False)
+        x = x.reshape(B, T, S, d).transpose(1, 2).reshape(B * S, T, d)
+        x = x + attention(x, p + "temporal_attn", causal=True)  # no norm before temporal attention
+        normed = x if config.qk_norm else layer_norm(x, sd[p + "norm2.weight"], sd[p + "norm2.bias"])
+        hidden = normed @ sd[p + "mlp.fc1.weight"].T + sd[p + "mlp.fc1.bias"]
+        hidden = 0.5 * hidden * (1 + torch.erf(hidden / math.sqrt(2)))
+        x = x + hidden @ sd[p + "mlp.fc2.weight"].T + sd[p + "mlp.fc2.bias"]
+        h = x.reshape(B, S, T, d).transpose(1, 2)
+    if config.use_mup:
+        h = h / (d / 256)
+    logits = h @ sd["out_x_proj.weight"].T + sd["out_x_proj.bias"]  # (B, T, S, F*V)
+    return logits.permute(0, 3, 1, 2).reshape(B, -1, T, H, W)
+
+
+def write_published_checkpoint(path: Path, config: GenieConfig, sd: dict) -> None:
+    path.mkdir(parents=True)
+    (path / "config.json").write_text(json.dumps(config.to_dict(), sort_keys=True, indent=2))
+    safetensors.torch.save_file(sd, str(path / "model.safetensors"))
+
+
+def random_tokens(config: GenieConfig, B: int, T: int, seed: int = 0, mask_rate: float = 0.3) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randint(0, config.image_vocab_size, (B, T, config.H, config.W), generator=g)
+    return x.masked_fill(torch.rand(x.shape, generator=g) < mask_rate, config.mask_token_id)
+
+
+def test_35m_config_has_published_names_shapes_and_size():
+    config = GenieConfig.from_pretrained(CONFIG_DIR / "magvit_n32_h8_d256.json")
+    shapes = {k: tuple(v.shape) for k, v in STMaskGIT(config).state_dict().items()}
+    d = 256
+    expected_layer0 = {
+        "norm1.weight": (d,), "norm1.bias": (d,), "spatial_attn.qkv.weight": (3 * d, d),
+        "spatial_attn.proj.weight": (d, d), "spatial_attn.proj.bias": (d,), "temporal_attn.qkv.weight": (3 * d, d),
+        "temporal_attn.proj.weight": (d, d), "temporal_attn.proj.bias": (d,), "norm2.weight": (d,),
+        "norm2.bias": (d,), "mlp.fc1.weight": (4 * d, d), "mlp.fc1.bias": (4 * d,), "mlp.fc2.weight": (d, 4 * d),
+        "mlp.fc2.bias": (d,)}
+    expected = {"pos_embed_TSC": (1, 16, 256, d), "token_embed.mask_token_embed": (1, d),
+                "token_embed.factored_embeds.0.weight": (512, d), "token_embed.factored_embeds.1.weight": (512, d),
+                "out_x_proj.weight": (1024, d), "out_x_proj.bias": (1024,)}
+    expected.update({f"decoder.layers.{i}.{k}": v for i in range(32) for k, v in expected_layer0.items()})
+    assert shapes == expected
+    assert round(sum(math.prod(s) for s in shapes.values()) / 1e6, 1) == 35.2
+
+
+def test_8_layer_config_is_the_benchmark_shape():
+    config = GenieConfig.from_pretrained(CONFIG_DIR / "magvit_n8_h8_d256.json")
+    assert (config.num_layers, config.num_heads, config.d_model, config.T, config.S) == (8, 8, 256, 16, 256)
+
+
+@pytest.mark.parametrize("qk_norm", [False, True])
+def test_published_layout_checkpoint_matches_reference_forward(tmp_path, qk_norm):
+    config = tiny_config(qk_norm=qk_norm)
+    sd = published_state_dict(config)
+    write_published_checkpoint(tmp_path / "ckpt", config, sd)
+    model = STMaskGIT.from_pretrained(tmp_path / "ckpt")
+    assert not model.training
+    x = random_tokens(config, B=2, T=4)
+    with torch.no_grad():
+        logits = model.compute_logits(x)
+        out = model(x.flatten(1), x.flatten(1))
+    ref = reference_logits(sd, config, x)
+    assert logits.shape == (2, 2 * 64, 4, 4, 4)
+    assert ref.abs().max() > 1  # the comparison is not between near-zero numbers
+    torch.testing.assert_close(logits.double(), ref, atol=2e-4, rtol=1e-4)
+    torch.testing.assert_close(out.logits, logits)
+
+
+def test_mup_scales_attention_and_readout(tmp_path):
+    config = tiny_config(use_mup=True, d_model=64, num_heads=4)
+    sd = published_state_dict(config, seed=1)
+    model = STMaskGIT(config)
+    model.load_checkpoint_state_dict(sd)
+    x = random_tokens(config, B=1, T=3, seed=1)
+    with torch.no_grad():
+        logits = model.compute_logits(x)
+    torch.testing.assert_close(logits.double(), reference_logits(sd, config, x), atol=2e-4, rtol=1e-4)
+    plain = STMaskGIT(tiny_config(d_model=64, num_heads=4))
+    plain.load_checkpoint_state_dict(sd)
+    with torch.no_grad():
+        assert not torch.allclose(plain.compute_logits(x), logits, atol=1e-2)
+
+
+def test_loss_is_factored_ce_over_masked_tokens_of_later_frames():
+    config = tiny_config()
+    model = STMaskGIT(config)
+    model.init_weights()
+    with torch.no_grad():
+        model.out_x_proj.weight.normal_(0, 1.0)
+    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    g = torch.Generator().manual_seed(3)
+    inputs = labels.masked_fill(torch.rand(labels.shape, generator=g) < 0.5, config.mask_token_id)
+    out = model(inputs.flatten(1), labels.flatten(1), attention_mask=torch.ones_like(inputs.flatten(1)))
+
+    V = config.factored_vocab_size
+    logp = out.logits.detach().reshape(2, 2, V, 4, 4, 4).log_softmax(dim=2)  # (B, F, V, T, H, W)
+    ce = -(logp[:, 0].gather(1, (labels % V).unsqueeze(1)) + logp[:, 1].gather(1, (labels // V).unsqueeze(1)))
+    ce = ce.squeeze(1)  # (B, T, H, W)
+    right = (logp[:, 0].argmax(1) == labels % V) & (logp[:, 1].argmax(1) == labels // V)
+    relevant = (inputs == config.mask_token_id)
+    relevant[:, 0] = False  # frame 0 never counts
+    assert relevant.sum() > 10
+    torch.testing.assert_close(out.loss.detach(), ce[relevant].mean())
+    torch.testing.assert_close(out.acc, right[relevant].float().mean())
+    out.loss.backward()
+    assert model.pos_embed_TSC.grad is not None
+
+
+def test_init_weights():
+    model = STMaskGIT(tiny_config(d_model=64, num_heads=4))
+    model.init_weights()
+    w = model.decoder.layers[0].mlp.fc1.weight
+    assert abs(w.std().item() - 0.02) < 0.002
+    assert model.decoder.layers[0].mlp.fc1.bias.abs().max() == 0
+    assert abs(model.token_embed.factored_embeds[0].weight.std().item() - 0.02) < 0.002
+    assert model.pos_embed_TSC.abs().max() == 0
+
+
+def test_checkpoint_round_trip(tmp_path):
+    config = tiny_config(qk_norm=True, qkv_bias=True)
+    model = STMaskGIT(config)
+    model.init_weights()
+    model.save_pretrained(tmp_path / "ckpt")
+    assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == ["config.json", "model.safetensors"]
+    assert [p.name for p in tmp_path.iterdir()] == ["ckpt"]  # no temporary directory left behind
+    assert json.loads((tmp_path / "ckpt" / "config.json").read_text()) == config.to_dict()
+    loaded = STMaskGIT.from_pretrained(str(tmp_path / "ckpt"))
+    assert loaded.config == config
+    for k, v in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[k], v), k
+    # saving again into the existing directory replaces the files and keeps unrelated ones
+    (tmp_path / "ckpt" / "README.md").write_text("notes")
+    model.init_weights()
+    model.save_pretrained(tmp_path / "ckpt")
+    assert (tmp_path / "ckpt" / "README.md").read_text() == "notes"
+    again = STMaskGIT.from_pretrained(tmp_path / "ckpt")
+    assert torch.equal(again.out_x_proj.weight, model.out_x_proj.weight)
+
+
+def test_unknown_config_key_is_an_error(tmp_path):
+    config = tiny_config()
+    write_published_checkpoint(tmp_path / "ckpt", config, published_state_dict(config))
+    d = json.loads((tmp_path / "ckpt" / "config.json").read_text())
+    d["rope"] = True
+    (tmp_path / "ckpt" / "config.json").write_text(json.dumps(d))
+    with pytest.raises(ConfigError, match="rope"):
+        STMaskGIT.from_pretrained(tmp_path / "ckpt")
+
+
+def test_weights_not_matching_config_list_the_keys(tmp_path):
+    config = tiny_config(qk_norm=False)
+    sd = published_state_dict(tiny_config(qk_norm=True))  # qk_norm weights under a qk_norm=false config
+    write_published_checkpoint(tmp_path / "ckpt", config, sd)
+    with pytest.raises(CheckpointError) as info:
+        STMaskGIT.from_pretrained(tmp_path / "ckpt")
+    message = str(info.value)
+    assert "model.safetensors" in message
+    assert "decoder.layers.0.norm1.weight" in message  # missing
+    assert "decoder.layers.0.spatial_attn.norm.weight" in message  # unexpected
+
+    sd = published_state_dict(config)
+    sd["out_x_proj.bias"] = torch.zeros(7)
+    model = STMaskGIT(config)
+    with pytest.raises(CheckpointError, match=r"out_x_proj.bias: checkpoint \(7,\)"):
+        model.load_checkpoint_state_dict(sd)
+
+
+def test_missing_checkpoint_and_offline_hub_id_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        STMaskGIT.from_pretrained(tmp_path / "no" / "such" / "dir")
+    (tmp_path / "half").mkdir()
+    (tmp_path / "half" / "config.json").write_text("{}")
+    with pytest.raises(FileNotFoundError, match="model.safetensors"):
+        STMaskGIT.from_pretrained(tmp_path / "half")
+    with pytest.raises(FileNotFoundError, match="huggingface-cli download someone/GENIE_TEST --local-dir"):
+        STMaskGIT.from_pretrained("someone/GENIE_TEST", local_files_only=True)
+
+
+def test_bad_token_inputs_are_rejected():
+    config = tiny_config()
+    model = STMaskGIT(config)
+    with pytest.raises(ValueError, match="position embeddings"):
+        model.compute_logits(torch.zeros(1, config.T + 1, 4, 4, dtype=torch.long))
+    with pytest.raises(ValueError, match="H\\*W = S = 16"):
+        model.compute_logits(torch.zeros(1, 2, 3, 3, dtype=torch.long))
+    with pytest.raises(ValueError, match="token ids must be in"):
+        model.compute_logits(torch.full((1, 2, 4, 4), config.mask_token_id + 1))
+    with pytest.raises(ValueError, match="input_ids and labels"):
+        model(torch.zeros(1, 20, dtype=torch.long), torch.zeros(1, 20, dtype=torch.long))
+
+
+def test_bf16_autocast_forward_runs():
+    config = tiny_config()
+    model = STMaskGIT(config)
+    model.init_weights()
+    x = random_tokens(config, B=1, T=4)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        out = model(x.flatten(1), x.flatten(1))
+    assert torch.isfinite(out.loss)
+    assert F.cosine_similarity(out.logits.float().flatten(), model.compute_logits(x).detach().flatten(), 0) > 0.99

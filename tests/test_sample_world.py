@@ -1,0 +1,151 @@
+"""Tests of the ViZDoom sample-world generator: layout, action meaning, determinism, split disjointness, CLI."""
+import json
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("vizdoom")
+
+from data import sample_world as sw  # noqa: E402
+
+# Short warm-up keeps the tests fast; 35 tics is still past the frozen first tics of an episode.
+FAST = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)
+MAPS = ("MAP01", "MAP04")
+
+
+@pytest.fixture(scope="module")
+def split():
+    return sw.generate_split(MAPS, episodes_per_map=2, episode_len=300, seed=0, cfg=FAST, progress=False)
+
+
+def test_layout_shapes_and_dtypes(split):
+    n = 2 * 2 * 300
+    assert split["frames"].shape == (n, 64, 64, 3) and split["frames"].dtype == np.uint8
+    assert split["segment_ids"].shape == (n,) and split["segment_ids"].dtype == np.int32
+    assert split["actions_buttons"].shape == (n, len(sw.BUTTON_NAMES))
+    assert split["actions_buttons"].dtype == np.float32
+    assert split["actions_driving_command"].shape == (n, 2)
+    assert split["actions_driving_command"].dtype == np.float32
+    assert np.isfinite(split["actions_driving_command"]).all()
+    assert int(split["hz"]) == sw.HZ == 35
+    assert list(split["button_names"]) == list(sw.BUTTON_NAMES)
+    assert list(split["maps"]) == ["MAP01", "MAP01", "MAP04", "MAP04"]
+    # One id per episode, increasing, each episode exactly episode_len frames.
+    assert np.array_equal(split["segment_ids"], np.repeat(np.arange(4, dtype=np.int32), 300))
+
+
+def test_frames_look_like_a_walk(split):
+    frames = split["frames"].astype(np.float32)
+    assert 10 < frames.mean() < 200  # neither black nor blown out
+    per_frame_std = frames.reshape(len(frames), -1).std(axis=1)
+    assert np.median(per_frame_std) > 10  # textured views, not a flat wall colour
+    # Consecutive frames of an episode change (the walker moves), episodes differ from each other.
+    ep = split["frames"][:300].astype(np.int16)
+    assert np.abs(np.diff(ep, axis=0)).mean() > 1
+    assert not np.array_equal(split["frames"][0], split["frames"][300])
+
+
+def test_buttons_are_consistent_choices(split):
+    b = split["actions_buttons"]
+    assert set(np.unique(b)) <= {0.0, 1.0}
+    names = list(sw.BUTTON_NAMES)
+    fwd, back = b[:, names.index("MOVE_FORWARD")], b[:, names.index("MOVE_BACKWARD")]
+    left, right = b[:, names.index("TURN_LEFT")], b[:, names.index("TURN_RIGHT")]
+    assert not np.any((fwd == 1) & (back == 1)) and not np.any((left == 1) & (right == 1))
+    assert fwd.mean() > 0.4  # the explorer prefers walking
+    assert (left + right).mean() > 0.05  # and turns now and then
+
+
+def test_driving_command_matches_buttons(split):
+    b, dc = split["actions_buttons"], split["actions_driving_command"]
+    fwd, back, left, right = b[:, 0] == 1, b[:, 1] == 1, b[:, 2] == 1, b[:, 3] == 1
+    linear, angular = dc[:, 0], dc[:, 1]
+    assert linear[fwd].mean() > 40  # map units/s; top walking speed is about 146
+    assert linear[fwd].mean() > linear[~fwd].mean() + 20
+    if back.sum() > 10:
+        assert linear[back].mean() < linear[fwd].mean()
+    # Turning has no momentum: every turn tic rotates by exactly turn_speed degrees, left positive.
+    turn_rate = np.deg2rad(FAST.turn_speed) * sw.HZ
+    np.testing.assert_allclose(angular[left], turn_rate, rtol=0.01)  # ViZDoom rounds to its angle units
+    np.testing.assert_allclose(angular[right], -turn_rate, rtol=0.01)  # ViZDoom rounds to its angle units
+    np.testing.assert_allclose(angular[~left & ~right], 0.0, atol=1e-3)
+
+
+def test_driving_command_is_forward_difference_of_poses(split):
+    """Row t describes the motion from frame t to frame t+1 (checked inside the first episode)."""
+    poses, dc = split["poses"][:300].astype(np.float64), split["actions_driving_command"][:300]
+    dist = np.hypot(*np.diff(poses[:, :2], axis=0).T) * sw.HZ
+    turn = (np.diff(poses[:, 2]) + 180) % 360 - 180
+    np.testing.assert_allclose(dc[:-1, 1], np.deg2rad(turn) * sw.HZ, atol=1e-3)
+    # linear is the displacement projected on the heading: never longer than it, and nearly all of it.
+    assert np.all(np.abs(dc[:-1, 0]) <= dist + 1e-2)
+    assert np.abs(dc[:-1, 0]).sum() > 0.9 * dist.sum()
+
+
+def test_driving_command_convention():
+    # Heading 90 degrees (north), moving 2 units north per tic, then turning left across the 360/0 wrap.
+    poses = np.array([[0, 0, 90], [0, 2, 90], [0, 4, 90], [0, 4, 359], [0, 4, 1]], dtype=np.float32)
+    dc = sw.driving_command(poses, hz=35)
+    assert dc.shape == (4, 2) and dc.dtype == np.float32
+    np.testing.assert_allclose(dc[:2], [[70, 0], [70, 0]], atol=1e-3)
+    assert dc[2, 1] < 0  # 90 -> 359 is a 91 degree right turn
+    np.testing.assert_allclose(dc[3], [0, np.deg2rad(2) * 35], atol=1e-4)  # 359 -> 1 is +2 degrees
+
+
+def test_same_seed_is_byte_identical_and_seeds_differ():
+    kwargs = dict(maps=("MAP09",), episodes_per_map=1, episode_len=80, cfg=FAST, progress=False)
+    a = sw.generate_split(seed=3, **kwargs)
+    b = sw.generate_split(seed=3, **kwargs)
+    c = sw.generate_split(seed=4, **kwargs)
+    for key in ("frames", "segment_ids", "actions_buttons", "actions_driving_command", "poses"):
+        assert a[key].tobytes() == b[key].tobytes(), key
+    assert a["frames"].tobytes() != c["frames"].tobytes()
+
+
+def test_workers_do_not_change_the_result():
+    kwargs = dict(maps=("MAP04",), episodes_per_map=2, episode_len=40, seed=0, cfg=FAST, progress=False,
+                  episodes_per_task=1)
+    one, two = sw.generate_split(workers=1, **kwargs), sw.generate_split(workers=2, **kwargs)
+    for key in ("frames", "segment_ids", "actions_buttons", "actions_driving_command"):
+        assert one[key].tobytes() == two[key].tobytes(), key
+
+
+def test_train_and_val_are_disjoint():
+    assert not set(sw.HELDOUT_MAPS) & set(sw.TRAIN_MAPS)
+    seeds = {split: {sw.episode_seed(0, split, m, e) for m in sw.TRAIN_MAPS for e in range(50)}
+             for split in ("train", "val")}
+    assert len(seeds["train"]) == len(seeds["val"]) == 50 * len(sw.TRAIN_MAPS)
+    assert not seeds["train"] & seeds["val"]
+    kwargs = dict(maps=("MAP01",), episodes_per_map=1, episode_len=40, seed=0, cfg=FAST, progress=False)
+    train = sw.generate_split(split="train", **kwargs)
+    val = sw.generate_split(split="val", **kwargs)
+    assert train["episode_seeds"][0] != val["episode_seeds"][0]
+    assert not np.array_equal(train["frames"], val["frames"])
+
+
+def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "raw"
+    argv = ["sample_world", "--out_dir", str(out), "--seed", "1", "--train_maps", "MAP01", "--val_maps", "MAP18",
+            "--train_episodes", "1", "--val_episodes", "1", "--episode_len", "30", "--workers", "1"]
+    monkeypatch.setattr(sys, "argv", argv)
+    sw.main()
+    files = {p.name for p in out.iterdir()}
+    assert files == {"train.npz", "val.npz", sw.SIDECAR_NAME}  # no temp files left behind
+    with np.load(out / "train.npz") as f:
+        assert f["frames"].shape == (30, 64, 64, 3)
+        assert f["actions_buttons"].shape == (30, 5) and f["actions_driving_command"].shape == (30, 2)
+        assert int(f["hz"]) == 35 and list(f["maps"]) == ["MAP01"]
+    with np.load(out / "val.npz") as f:
+        assert list(f["maps"]) == ["MAP18"]
+    assert json.loads((out / sw.SIDECAR_NAME).read_text())["seed"] == 1
+    mtimes = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    capsys.readouterr()
+
+    sw.main()
+    assert "skipping" in capsys.readouterr().out
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == mtimes
+
+    monkeypatch.setattr(sys, "argv", argv + ["--overwrite"])
+    sw.main()
+    assert (out / "train.npz").stat().st_mtime_ns != mtimes["train.npz"]

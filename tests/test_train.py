@@ -1,0 +1,206 @@
+"""train.py on CPU with a tiny model: learning, checkpoints (round trip, in-process resume), data order, errors."""
+import json
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+import train
+from data import RawTokenDataset, get_maskgit_collator, write_token_dataset
+from genie.config import GenieConfig
+from genie.st_mask_git import STMaskGIT
+from genie.train_state import (COMPLETE_MARKER, ResumableBatchSampler, list_checkpoints,
+                               load_training_checkpoint)
+
+TINY = {"num_layers": 2, "num_heads": 2, "d_model": 32, "T": 4, "S": 16, "image_vocab_size": 4096,
+        "num_prompt_frames": 2}
+
+
+def make_token_dataset(path, segment_lengths, s=4, vocab_size=4096, num_distinct=8, seed=0):
+    """A learnable dataset: each clip repeats one frame of tokens drawn from the same `num_distinct` ids (the
+    ids do not depend on `seed`, the frames do)."""
+    ids = np.random.default_rng(1234).choice(vocab_size, size=num_distinct, replace=False)
+    rng = np.random.default_rng(seed)
+    clips = [np.repeat(rng.choice(ids, size=(1, s, s)), n, axis=0) for n in segment_lengths]
+    segment_ids = np.repeat(np.arange(len(segment_lengths)), segment_lengths)
+    write_token_dataset(path, np.concatenate(clips), segment_ids=segment_ids,
+                        metadata={"vocab_size": vocab_size, "hz": 10, "tokenizer_ckpt": "data/tiny_tokenizer"})
+    return path
+
+
+def write_config(path, **overrides):
+    path.write_text(json.dumps({**TINY, **overrides}))
+    return path
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny models train fastest on one thread, and the test machine's cores are shared."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tiny_data")
+    return {"train": make_token_dataset(root / "train", [8] * 12, seed=0),
+            "val": make_token_dataset(root / "val", [8] * 3, seed=1),
+            "config": write_config(root / "tiny.json")}
+
+
+def train_argv(data, output_dir, *extra):
+    return ["--genie_config", str(data["config"]), "--train_data_dir", str(data["train"]),
+            "--val_data_dir", str(data["val"]), "--output_dir", str(output_dir), "--window_size", "4",
+            "--stride", "1", "--per_device_train_batch_size", "4", "--per_device_eval_batch_size", "4",
+            "--learning_rate", "3e-3", "--lr_scheduler_type", "constant", "--max_eval_steps", "2",
+            "--eval_every_n_steps", "0", "--seed", "3", *extra]
+
+
+def masked_val_loss(model, data_dir, config, num_windows=8):
+    """The model's training loss on fixed, seeded masks of the first validation windows."""
+    ds = RawTokenDataset(data_dir, window_size=config.T, stride=1)
+    batch = get_maskgit_collator(config, seed=0)([ds[i] for i in range(num_windows)])
+    with torch.no_grad():
+        return model.eval()(input_ids=batch["input_ids"], labels=batch["labels"]).loss.item()
+
+
+def load_weights(ckpt_dir):
+    return load_file(str(ckpt_dir / "model.safetensors"))
+
+
+def assert_same_weights(a, b):
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_training_lowers_the_loss(tiny_data, tmp_path):
+    train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "30", "--checkpointing_steps", "0"))
+    config = GenieConfig.from_pretrained(tiny_data["config"])
+    torch.manual_seed(0)
+    untrained = STMaskGIT(config)
+    untrained.init_weights()
+    trained = STMaskGIT.from_pretrained(tmp_path / "final_checkpt")
+    before = masked_val_loss(untrained, tiny_data["val"], config)
+    after = masked_val_loss(trained, tiny_data["val"], config)
+    assert after < 0.7 * before, (before, after)
+    assert not list_checkpoints(tmp_path)  # --checkpointing_steps 0 writes only final_checkpt
+
+
+def test_checkpoint_round_trip_and_in_process_resume(tiny_data, tmp_path):
+    full, resumed = tmp_path / "full", tmp_path / "resumed"
+    extra = ("--max_train_steps", "6", "--checkpointing_steps", "2", "--checkpoints_total_limit", "0",
+             "--gradient_accumulation_steps", "2", "--eval_every_n_steps", "3")
+    train.main(train_argv(tiny_data, full, *extra))
+    assert [step for step, _ in list_checkpoints(full)] == [2, 4, 6]
+
+    ckpt = load_training_checkpoint(full / "checkpoint-6")
+    assert ckpt["trainer"]["step"] == 6
+    assert len(ckpt["rng"]) == 1 and ckpt["optimizer"]["state"]
+    assert_same_weights(load_weights(full / "checkpoint-6"), load_weights(full / "final_checkpt"))
+    reloaded = STMaskGIT.from_pretrained(full / "checkpoint-6")  # every checkpoint is also a HF model dir
+    assert_same_weights({k: v for k, v in reloaded.state_dict().items()}, load_weights(full / "final_checkpt"))
+
+    train.main(train_argv(tiny_data, resumed, *extra, "--resume_from_checkpoint", str(full / "checkpoint-2")))
+    assert_same_weights(load_weights(full / "final_checkpt"), load_weights(resumed / "final_checkpt"))
+    ckpt_resumed = load_training_checkpoint(resumed / "checkpoint-6")
+    for group_a, group_b in zip(ckpt["optimizer"]["state"].values(), ckpt_resumed["optimizer"]["state"].values()):
+        assert all(torch.equal(group_a[k], group_b[k]) for k in group_a)
+
+
+def test_checkpoints_total_limit_and_latest(tiny_data, tmp_path):
+    train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "3", "--checkpointing_steps", "1",
+                          "--checkpoints_total_limit", "2"))
+    assert [step for step, _ in list_checkpoints(tmp_path)] == [2, 3]
+    # A later, half-written checkpoint (no marker) is ignored by "latest": the run resumes from step 3.
+    (tmp_path / "checkpoint-9").mkdir()
+    train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "4", "--checkpointing_steps", "1",
+                          "--checkpoints_total_limit", "2", "--resume_from_checkpoint", "latest"))
+    assert [step for step, _ in list_checkpoints(tmp_path)] == [3, 4]
+    assert load_training_checkpoint(tmp_path / "checkpoint-4")["trainer"]["step"] == 4
+    with pytest.raises(SystemExit, match="incomplete"):
+        train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "10",
+                              "--resume_from_checkpoint", str(tmp_path / "checkpoint-9")))
+
+
+@pytest.mark.parametrize("override,data_key,pattern", [
+    ({"T": 8, "num_prompt_frames": 2}, None, "window_size 4 must equal .* T=8"),
+    ({"S": 64}, None, "4x4 = 16 tokens .* S=64"),
+    ({"image_vocab_size": 1024}, None, "vocab_size 4096 differs .* 1024"),
+])
+def test_data_config_mismatch_is_a_clear_error(tiny_data, tmp_path, override, data_key, pattern):
+    config = write_config(tmp_path / "bad.json", **override)
+    data = {**tiny_data, "config": config}
+    with pytest.raises(SystemExit, match=pattern):
+        train.main(train_argv(data, tmp_path / "out", "--max_train_steps", "1"))
+
+
+def test_val_data_mismatch_names_the_file(tiny_data, tmp_path):
+    make_token_dataset(tmp_path / "val_s8", [12], s=8)
+    data = {**tiny_data, "val": tmp_path / "val_s8"}
+    with pytest.raises(SystemExit, match=r"val_s8/metadata.json: frames are 8x8"):
+        train.main(train_argv(data, tmp_path / "out", "--max_train_steps", "1"))
+
+
+def test_too_little_data_for_one_step(tiny_data, tmp_path):
+    with pytest.raises(SystemExit, match="too few for one optimizer step"):
+        train.main(train_argv(tiny_data, tmp_path, "--per_device_train_batch_size", "64", "--max_train_steps", "1"))
+
+
+def test_sampler_order_depends_only_on_seed_and_epoch_and_shards_disjointly():
+    def epoch(num_replicas, rank, e, seed=7, start=0):
+        sampler = ResumableBatchSampler(50, 3, num_replicas, rank, seed=seed)
+        sampler.set_epoch(e, start)
+        return list(sampler)
+
+    assert epoch(1, 0, 0) == epoch(1, 0, 0)
+    assert epoch(1, 0, 0) != epoch(1, 0, 1) and epoch(1, 0, 0) != epoch(1, 0, 0, seed=8)
+    assert epoch(1, 0, 2, start=5) == epoch(1, 0, 2)[5:]  # resuming skips exactly the batches already seen
+    shards = [sum(epoch(2, r, 0), []) for r in range(2)]
+    assert len(shards[0]) == len(shards[1]) == 24  # 25 windows per process -> 8 full batches of 3
+    assert not set(shards[0]) & set(shards[1])
+    assert all(len(b) == 3 for b in epoch(2, 1, 0))
+
+
+def test_lr_schedules():
+    linear = train.lr_multiplier("linear", warmup=2, total=10)
+    assert [linear(s) for s in (0, 1, 2, 6, 10)] == pytest.approx([0, 0.5, 1, 0.5, 0])
+    cosine = train.lr_multiplier("cosine", warmup=0, total=10)
+    assert cosine(0) == pytest.approx(1) and cosine(5) == pytest.approx(0.5) and cosine(10) == pytest.approx(0)
+    custom = train.lr_multiplier("custom_cosine", warmup=2, total=12)
+    assert custom(0) == pytest.approx(0.5) and custom(12) == pytest.approx(0.1)
+    assert train.lr_multiplier("constant", 5, 10)(0) == 1.0
+
+
+def test_checkpoint_layout_and_no_temp_leftovers(tiny_data, tmp_path):
+    train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "1", "--checkpointing_steps", "1"))
+    ckpt = tmp_path / "checkpoint-1"
+    names = {p.name for p in ckpt.iterdir()}
+    assert {COMPLETE_MARKER, "config.json", "model.safetensors", "optimizer.safetensors", "optimizer.json",
+            "rng.safetensors", "rng.json", "trainer_state.json"} <= names
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp-")]
+
+
+def test_warmstart_loads_weights_and_rejects_other_shapes(tiny_data, tmp_path):
+    torch.manual_seed(1)
+    source = STMaskGIT(GenieConfig(**TINY))
+    source.init_weights()
+    source.save_pretrained(tmp_path / "source")
+    train.main(train_argv(tiny_data, tmp_path / "run", "--max_train_steps", "0",
+                          "--warmstart_path", str(tmp_path / "source")))
+    assert_same_weights(load_weights(tmp_path / "source"), load_weights(tmp_path / "run" / "final_checkpt"))
+
+    wide = STMaskGIT(GenieConfig(**{**TINY, "d_model": 64}))
+    wide.save_pretrained(tmp_path / "wide")
+    with pytest.raises(SystemExit, match=r"--warmstart_path .*wide.*shape mismatches"):
+        train.main(train_argv(tiny_data, tmp_path / "run2", "--max_train_steps", "1",
+                              "--warmstart_path", str(tmp_path / "wide")))
+
+
+def test_missing_tracker_package_is_reported(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setattr(train.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(SystemExit, match="--report_to wandb needs the wandb package"):
+        train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "1", "--report_to", "wandb"))

@@ -1,0 +1,550 @@
+#!/usr/bin/env python
+"""Train the GENIE dynamics model (STMaskGIT) on a token dataset, with accelerate (CPU, one GPU, many GPUs/nodes).
+
+    python train.py --genie_config genie/configs/sample_world.json --output_dir data/genie_model
+    accelerate launch --num_processes 2 train.py ...          # data parallel (DDP); --cpu for CPU processes
+    python train.py ... --resume_from_checkpoint latest       # continue a killed/preempted run
+
+The model owns its loss (model(input_ids, labels).loss); this script owns the loop.
+
+Crash safety: every `--checkpointing_steps` optimizer steps the full training state is written atomically to
+`output_dir/checkpoint-<step>/` (see genie/train_state.py). The data order depends only on the seed and the epoch,
+and the collator's masking only on the seed and the position in the data, so a run resumed from a checkpoint takes
+exactly the steps the uninterrupted run would have taken. SIGTERM saves a checkpoint and exits cleanly.
+A step whose loss or gradient is NaN/inf is skipped; `--max_nonfinite_steps` of them in a row stop the run after
+saving a checkpoint of the last good weights (the data position is past the bad batches).
+"""
+import argparse
+import contextlib
+import importlib.util
+import logging
+import math
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from accelerate import Accelerator
+from accelerate.utils import gather_object, set_seed
+from safetensors.torch import load_model
+from torch.utils.data import DataLoader, Subset
+from tqdm.auto import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+import genie.configs
+from data import RawTokenDataset, TokenDatasetError, get_maskgit_collator
+from genie.config import ConfigError, GenieConfig
+from genie.st_mask_git import CheckpointError, STMaskGIT
+from genie.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
+                               checkpoint_dir, load_training_checkpoint, prune_checkpoints, remove_stale_temp_dirs,
+                               resolve_resume_path, restore_rng_state, save_training_checkpoint)
+
+logger = logging.getLogger("train")
+
+CONFIG_DIR = Path(genie.configs.__file__).parent
+LR_SCHEDULES = ("constant", "constant_with_warmup", "linear", "cosine", "custom_cosine")
+
+
+class TrainingError(RuntimeError):
+    """The run cannot go on (bad data/config combination, diverged training)."""
+
+
+def first_existing(*paths) -> str:
+    """The first path that exists, else the last one (so the error message names the canonical location)."""
+    for p in paths:
+        if Path(p).exists():
+            return str(p)
+    return str(paths[-1])
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description="Train a spatio-temporal MaskGIT (GENIE) dynamics model on video tokens.",
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    g = p.add_argument_group("data")
+    g.add_argument("--train_data_dir", default=first_existing("data/sample/train", "data/train_v1.1"),
+                   help="Token dataset directory (metadata.json, video.bin, segment_ids.bin) to train on.")
+    g.add_argument("--val_data_dir", default=first_existing("data/sample/val", "data/val_v1.1"),
+                   help="Token dataset directory for validation (non-overlapping windows).")
+    g.add_argument("--window_size", type=int, default=16, help="Frames per training window; must equal config T.")
+    g.add_argument("--stride", type=int, default=15, help="Frames between consecutive frames of a window.")
+    g.add_argument("--filter_overlaps", action="store_true",
+                   help="Use only non-overlapping training windows (validation always does).")
+    g.add_argument("--num_workers", type=int, default=None,
+                   help="DataLoader worker processes (default: 4 on CUDA, 0 on CPU, where reading is cheap).")
+
+    g = p.add_argument_group("model")
+    g.add_argument("--genie_config", default=None,
+                   help="GenieConfig JSON (default: genie/configs/sample_world.json, else the tiny test config).")
+    g.add_argument("--warmstart_path", default=None,
+                   help="Hugging Face checkpoint directory (config.json + model.safetensors) whose weights initialize "
+                        "the model; the shapes must match --genie_config.")
+    g.add_argument("--resume_from_checkpoint", default=None,
+                   help="'latest' (newest complete checkpoint-<step> in --output_dir; starts fresh if there is none) "
+                        "or a checkpoint directory: continue that run exactly.")
+
+    g = p.add_argument_group("optimization")
+    g.add_argument("--per_device_train_batch_size", type=int, default=4, help="Windows per process per micro-batch.")
+    g.add_argument("--per_device_eval_batch_size", type=int, default=4, help="Windows per process per eval batch.")
+    g.add_argument("--gradient_accumulation_steps", type=int, default=1, help="Micro-batches per optimizer step.")
+    g.add_argument("--learning_rate", type=float, default=1e-4, help="Peak learning rate (AdamW).")
+    g.add_argument("--weight_decay", type=float, default=0.0, help="AdamW weight decay (matrices only).")
+    g.add_argument("--adam_beta_1", type=float, default=0.9, help="AdamW beta1.")
+    g.add_argument("--adam_beta_2", type=float, default=0.999, help="AdamW beta2.")
+    g.add_argument("--adam_eps", type=float, default=1e-8, help="AdamW epsilon.")
+    g.add_argument("--lr_scheduler_type", default="linear", choices=LR_SCHEDULES,
+                   help="Learning-rate schedule over --max_train_steps (custom_cosine: warmup, then cosine to 10%%).")
+    g.add_argument("--num_warmup_steps", type=int, default=0, help="Linear warmup steps (optimizer steps).")
+    g.add_argument("--max_train_steps", type=int, default=None,
+                   help="Optimizer steps to train; overrides --num_train_epochs.")
+    g.add_argument("--num_train_epochs", type=int, default=1, help="Epochs to train when --max_train_steps is unset.")
+    g.add_argument("--max_grad_norm", type=float, default=1.0, help="Gradient clipping norm (<= 0: no clipping).")
+    g.add_argument("--max_nonfinite_steps", type=int, default=5,
+                   help="Stop (after saving a checkpoint) when this many steps in a row have a NaN/inf loss or "
+                        "gradient; each one is skipped with a warning.")
+    g.add_argument("--seed", type=int, default=42, help="Seed of initialization, data order and masking.")
+    g.add_argument("--mixed_precision", default="auto", choices=("auto", "no", "bf16"),
+                   help="auto: bf16 autocast on CUDA, fp32 on CPU.")
+    g.add_argument("--compile", action="store_true", help="torch.compile the model on CPU too (default: CUDA only).")
+    g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
+    g.add_argument("--overfit_first_batch", action="store_true",
+                   help="Debug: train and validate on the first batch of the training data only.")
+
+    g = p.add_argument_group("evaluation, checkpoints and logging")
+    g.add_argument("--output_dir", default="data/genie_model",
+                   help="Where checkpoint-<step>/ (full training state) and final_checkpt/ (model) are written.")
+    g.add_argument("--eval_every_n_steps", type=int, default=1000, help="Validate every N optimizer steps (0: never).")
+    g.add_argument("--max_eval_steps", type=int, default=100,
+                   help="Validation batches per process per evaluation (0: the whole validation set).")
+    g.add_argument("--checkpointing_steps", default="1000",
+                   help="Save the training state every N optimizer steps, 'epoch' for every epoch, or 0 for never "
+                        "(the final step is always saved unless 0).")
+    g.add_argument("--checkpoints_total_limit", type=int, default=3,
+                   help="Keep at most this many checkpoint-<step> directories (0: keep all).")
+    g.add_argument("--report_to", default="none", choices=("none", "tensorboard", "wandb"),
+                   help="Metrics tracker (logs are also written with `logging`).")
+
+    g = p.add_argument_group("testing hooks (used by the test suite; not for real runs)")
+    g.add_argument("--debug_inject_nan_at_steps", type=int, nargs="*", default=[],
+                   help="Test only: make the loss NaN in these optimizer steps (1-based step numbers).")
+    g.add_argument("--debug_step_sleep", type=float, default=0.0,
+                   help="Test only: sleep this many seconds after each optimizer step (to kill runs mid-training).")
+    args = p.parse_args(argv)
+    for name in ("window_size", "stride", "per_device_train_batch_size", "per_device_eval_batch_size",
+                 "gradient_accumulation_steps", "max_nonfinite_steps"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.max_train_steps is not None and args.max_train_steps < 0:
+        p.error(f"--max_train_steps must be >= 0, got {args.max_train_steps}")
+    if args.checkpointing_steps != "epoch" and not args.checkpointing_steps.isdigit():
+        p.error(f"--checkpointing_steps must be an integer or 'epoch', got {args.checkpointing_steps!r}")
+    return args
+
+
+# ---------------------------------------------------------------- setup
+
+def load_config(path) -> GenieConfig:
+    if path is None:
+        path = first_existing(CONFIG_DIR / "sample_world.json", CONFIG_DIR / "tiny_test.json")
+    return GenieConfig.from_pretrained(path)
+
+
+def check_data_matches_config(dataset: RawTokenDataset, config: GenieConfig, window_size: int) -> None:
+    meta, where = dataset.metadata, dataset.data_dir / "metadata.json"
+    if window_size != config.T:
+        raise TrainingError(f"--window_size {window_size} must equal the model config's T={config.T}")
+    if meta["s"] ** 2 != config.S:
+        raise TrainingError(f"{where}: frames are {meta['s']}x{meta['s']} = {meta['s'] ** 2} tokens but the model "
+                            f"config has S={config.S}; use a config with S={meta['s'] ** 2}")
+    if meta["vocab_size"] != config.image_vocab_size:
+        raise TrainingError(f"{where}: vocab_size {meta['vocab_size']} differs from the model config's "
+                            f"image_vocab_size {config.image_vocab_size}")
+
+
+def build_datasets(args, config: GenieConfig, batch_items: int):
+    """(train, val) datasets; with --overfit_first_batch both are the first `batch_items` training windows."""
+    train_ds = RawTokenDataset(args.train_data_dir, window_size=args.window_size, stride=args.stride,
+                               filter_overlaps=args.filter_overlaps)
+    check_data_matches_config(train_ds, config, args.window_size)
+    if args.overfit_first_batch:
+        subset = Subset(train_ds, range(min(batch_items, len(train_ds))))
+        return subset, subset
+    val_ds = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
+                             filter_overlaps=True)
+    check_data_matches_config(val_ds, config, args.window_size)
+    return train_ds, val_ds
+
+
+def build_model(config: GenieConfig, warmstart_path) -> STMaskGIT:
+    model = STMaskGIT(config)
+    model.init_weights()
+    if warmstart_path is not None:
+        source = STMaskGIT.from_pretrained(warmstart_path)
+        model.load_checkpoint_state_dict(source.state_dict(), source=f"--warmstart_path {warmstart_path}")
+    return model
+
+
+def build_optimizer(model, args, fused: bool) -> torch.optim.AdamW:
+    """AdamW; weight decay on matrices and embeddings only (nanoGPT), not on biases and norm weights."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    groups = [{"params": [p for p in params if p.dim() >= 2], "weight_decay": args.weight_decay},
+              {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
+    return torch.optim.AdamW(groups, lr=args.learning_rate, betas=(args.adam_beta_1, args.adam_beta_2),
+                             eps=args.adam_eps, fused=fused or None)
+
+
+def lr_multiplier(kind: str, warmup: int, total: int):
+    """step -> factor of the peak learning rate (Hugging Face semantics; custom_cosine as in the 1X script)."""
+    def factor(step: int) -> float:
+        if kind == "constant":
+            return 1.0
+        if kind == "custom_cosine":
+            if step < warmup:
+                return (step + 1) / warmup
+            progress = (step - warmup) / max(1, total - warmup)
+            return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+        if step < warmup:
+            return step / max(1, warmup)
+        if kind == "constant_with_warmup":
+            return 1.0
+        progress = (step - warmup) / max(1, total - warmup)
+        if kind == "linear":
+            return max(0.0, 1.0 - progress)
+        return max(0.0, 0.5 * (1 + math.cos(math.pi * progress)))  # cosine
+    return factor
+
+
+def batch_seed(*keys: int) -> int:
+    """A well-mixed 32-bit seed for one micro-batch's masking, from (seed, process, step, micro-batch)."""
+    return int(np.random.SeedSequence([k & 0xFFFFFFFF for k in keys]).generate_state(1)[0])
+
+
+def keep_list(items):
+    """DataLoader collate_fn: hand the items to the main process, which applies the (seeded) MaskGIT collator."""
+    return items
+
+
+class StopSignal:
+    """Remembers a SIGTERM so that the loop can save a checkpoint at the next step boundary."""
+
+    def __init__(self):
+        self.requested = False
+        self._previous = None
+
+    def _handle(self, signum, frame):
+        self.requested = True  # only a flag: the handler may interrupt anything, logging included
+
+    def __enter__(self):
+        self._previous = signal.signal(signal.SIGTERM, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        signal.signal(signal.SIGTERM, self._previous)
+        return False
+
+
+# ---------------------------------------------------------------- the loop
+
+class Trainer:
+    def __init__(self, args, accelerator: Accelerator, config: GenieConfig):
+        self.args, self.accelerator, self.config = args, accelerator, config
+        self.device = accelerator.device
+        self.rank, self.world = accelerator.process_index, accelerator.num_processes
+        B, ga = args.per_device_train_batch_size, args.gradient_accumulation_steps
+        self.train_ds, self.val_ds = build_datasets(args, config, B * ga * self.world)
+        self.sampler = ResumableBatchSampler(len(self.train_ds), B, self.world, self.rank, seed=args.seed,
+                                             shuffle=not args.overfit_first_batch)
+        self.steps_per_epoch = self.sampler.batches_per_epoch // ga
+        if self.steps_per_epoch == 0:
+            raise TrainingError(f"{args.train_data_dir}: {len(self.train_ds)} training windows are too few for one "
+                                f"optimizer step of {B} x {ga} (accumulation) x {self.world} (processes) windows")
+        self.max_steps = (args.max_train_steps if args.max_train_steps is not None
+                          else args.num_train_epochs * self.steps_per_epoch)
+        every = args.checkpointing_steps
+        self.checkpoint_every = self.steps_per_epoch if every == "epoch" else int(every)
+        self.tokens_per_step = B * ga * self.world * config.T * config.S
+
+        self.model = build_model(config, args.warmstart_path).to(self.device)
+        self.optimizer = build_optimizer(self.model, args, fused=self.device.type == "cuda")
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, lr_multiplier(args.lr_scheduler_type, args.num_warmup_steps, self.max_steps))
+        self.step = 0
+        self.consecutive_nonfinite = 0
+        self.last_saved_step = None
+        self.resume()
+        self.ddp_model, self.ddp_optimizer = accelerator.prepare(self.model, self.optimizer)
+        if self.use_compile():
+            self.ddp_model = torch.compile(self.ddp_model)
+
+    def use_compile(self) -> bool:
+        return not self.args.no_compile and (self.args.compile or self.device.type == "cuda")
+
+    # ---- checkpoints
+    def trainer_state(self) -> dict:
+        epoch, batch = divmod(self.step, self.steps_per_epoch)
+        return {"step": self.step, "epoch": epoch, "batch_in_epoch": batch * self.args.gradient_accumulation_steps,
+                "steps_per_epoch": self.steps_per_epoch, "scheduler": self.scheduler.state_dict(),
+                "world_size": self.world, "seed": self.args.seed, "num_train_windows": len(self.train_ds),
+                "per_device_train_batch_size": self.args.per_device_train_batch_size,
+                "gradient_accumulation_steps": self.args.gradient_accumulation_steps,
+                "args": dict(vars(self.args))}
+
+    def save_checkpoint(self) -> None:
+        """All processes call this (RNG states are gathered); only the main process writes."""
+        rng_states = gather_object([capture_rng_state()]) if self.world > 1 else [capture_rng_state()]
+        if self.accelerator.is_main_process:
+            path = checkpoint_dir(self.args.output_dir, self.step)
+            save_training_checkpoint(path, self.model, self.optimizer, self.trainer_state(), rng_states)
+            prune_checkpoints(self.args.output_dir, self.args.checkpoints_total_limit)
+            logger.info("saved training state to %s", path)
+        self.last_saved_step = self.step
+        self.accelerator.wait_for_everyone()
+
+    def resume(self) -> None:
+        path = resolve_resume_path(self.args.output_dir, self.args.resume_from_checkpoint)
+        if path is None:
+            if self.args.resume_from_checkpoint == "latest":
+                logger.info("no complete checkpoint in %s yet: starting from scratch", self.args.output_dir)
+            return
+        ckpt = load_training_checkpoint(path)
+        differing = sorted(k for k, v in self.config.to_dict().items() if ckpt["config"].get(k) != v)
+        if differing:
+            raise TrainingStateError(f"{path / 'config.json'}: the checkpoint's model config differs from "
+                                     f"--genie_config in {differing}")
+        load_model(self.model, str(ckpt["model_path"]), device=str(self.device))
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        state = ckpt["trainer"]
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.step = self.last_saved_step = state["step"]
+        same_order = all(state.get(k) == v for k, v in (
+            ("world_size", self.world), ("seed", self.args.seed), ("num_train_windows", len(self.train_ds)),
+            ("per_device_train_batch_size", self.args.per_device_train_batch_size),
+            ("gradient_accumulation_steps", self.args.gradient_accumulation_steps)))
+        if not same_order:
+            logger.warning("resuming with a different seed, dataset, batch size or process count than %s: training "
+                           "continues from step %d but the data order differs from the interrupted run", path,
+                           self.step)
+        rng = ckpt["rng"]
+        restore_rng_state(rng[self.rank] if len(rng) == self.world else rng[0])
+        logger.info("resumed from %s at step %d (epoch %d)", path, self.step, state["epoch"])
+
+    # ---- data
+    def epoch_batches(self, epoch: int, start_batch: int):
+        self.sampler.set_epoch(epoch, start_batch)
+        loader = DataLoader(self.train_ds, batch_sampler=self.sampler, collate_fn=keep_list,
+                            num_workers=self.num_workers(), pin_memory=self.device.type == "cuda",
+                            generator=torch.Generator())  # own generator: worker seeding leaves the global RNG alone
+        return iter(loader)
+
+    def num_workers(self) -> int:
+        if self.args.num_workers is not None:
+            return self.args.num_workers
+        return 4 if self.device.type == "cuda" else 0
+
+    def collate(self, items, seed: int) -> dict:
+        batch = get_maskgit_collator(self.config, seed=seed)(items)
+        return {k: batch[k].to(self.device, non_blocking=True) for k in ("input_ids", "labels")}
+
+    # ---- one optimizer step
+    def forward_backward(self, micro_batches) -> torch.Tensor:
+        """Accumulate gradients over the micro-batches; returns the mean loss (detached)."""
+        ga = len(micro_batches)
+        inject = (self.step + 1) in self.args.debug_inject_nan_at_steps
+        loss_sum = torch.zeros((), device=self.device)
+        for i, batch in enumerate(micro_batches):
+            sync = contextlib.nullcontext() if i == ga - 1 else self.accelerator.no_sync(self.ddp_model)
+            with sync:
+                loss = self.ddp_model(input_ids=batch["input_ids"], labels=batch["labels"]).loss / ga
+                if inject:
+                    loss = loss * float("nan")
+                self.accelerator.backward(loss)
+            loss_sum += loss.detach().float()
+        return loss_sum
+
+    def optimizer_step(self, loss: torch.Tensor, stop_requested: bool):
+        """Clip, check for NaN/inf (agreed on by all processes), step. Returns (grad_norm, finite, stop)."""
+        max_norm = self.args.max_grad_norm if self.args.max_grad_norm > 0 else float("inf")
+        grad_norm = self.accelerator.clip_grad_norm_(self.ddp_model.parameters(), max_norm)
+        flags = torch.stack([(~torch.isfinite(loss)) | (~torch.isfinite(grad_norm)),
+                             torch.tensor(stop_requested, device=self.device)]).float()
+        if self.world > 1:
+            flags = self.accelerator.reduce(flags, reduction="sum")
+        finite, stop = bool(flags[0] == 0), bool(flags[1] > 0)
+        if finite:
+            self.ddp_optimizer.step()
+        self.ddp_optimizer.zero_grad(set_to_none=True)
+        self.scheduler.step()  # the schedule follows the data position, skipped steps included
+        return grad_norm, finite, stop
+
+    def handle_nonfinite(self, finite: bool, loss: float) -> None:
+        if finite:
+            self.consecutive_nonfinite = 0
+            return
+        self.consecutive_nonfinite += 1
+        logger.warning("step %d: non-finite loss (%s) or gradient; step skipped (%d in a row, limit %d)",
+                       self.step, loss, self.consecutive_nonfinite, self.args.max_nonfinite_steps)
+        if self.consecutive_nonfinite >= self.args.max_nonfinite_steps:
+            self.save_checkpoint()
+            raise TrainingError(
+                f"{self.consecutive_nonfinite} optimizer steps in a row had a NaN/inf loss or gradient; stopped. "
+                f"The weights of the last good step are saved in {checkpoint_dir(self.args.output_dir, self.step)} "
+                f"(lower --learning_rate, check the data, or resume from it to skip the bad batches)")
+
+    # ---- evaluation
+    @torch.no_grad()
+    def evaluate(self) -> dict:
+        """Teacher-forced masked loss/accuracy on the same (seeded) validation batches and masks every time."""
+        sampler = ResumableBatchSampler(len(self.val_ds), self.args.per_device_eval_batch_size, self.world,
+                                        self.rank, seed=0, drop_last=False)
+        loader = DataLoader(self.val_ds, batch_sampler=sampler, collate_fn=keep_list, num_workers=0)
+        collator = get_maskgit_collator(self.config, seed=self.args.seed)
+        model = self.model.eval()  # the plain module: no DDP hooks, no recompilation for eval mode
+        totals = torch.zeros(3, dtype=torch.float64, device=self.device)  # loss * B, acc * B, B
+        for i, items in enumerate(loader):
+            if 0 < self.args.max_eval_steps <= i:
+                break
+            batch = collator(items)
+            with self.accelerator.autocast():
+                out = model(input_ids=batch["input_ids"].to(self.device), labels=batch["labels"].to(self.device))
+            n = len(items)
+            totals += torch.stack([out.loss.double() * n, torch.as_tensor(out.acc).double().to(self.device) * n,
+                                   torch.tensor(n, dtype=torch.float64, device=self.device)])
+        model.train()
+        if self.world > 1:
+            totals = self.accelerator.reduce(totals, reduction="sum")
+        return {"val_loss": (totals[0] / totals[2]).item(), "val_acc": (totals[1] / totals[2]).item()}
+
+    def log_eval(self) -> None:
+        metrics = self.evaluate()
+        logger.info("step %d: val_loss %.4f val_acc %.4f", self.step, metrics["val_loss"], metrics["val_acc"])
+        self.accelerator.log(metrics, step=self.step)
+
+    # ---- main loop
+    def train(self) -> None:
+        args = self.args
+        logger.info("training %d steps (%d per epoch) of %d tokens; %d processes; starting at step %d",
+                    self.max_steps, self.steps_per_epoch, self.tokens_per_step, self.world, self.step)
+        self.ddp_model.train()
+        bar = tqdm(total=self.max_steps, initial=self.step, disable=not self.accelerator.is_local_main_process,
+                   desc="train", dynamic_ncols=True)
+        # logging_redirect_tqdm: log lines go above the progress bar instead of through it.
+        with StopSignal() as stop_signal, logging_redirect_tqdm():  # SIGTERM after the last step: saves finish
+            while self.step < self.max_steps:
+                epoch, batch_in_epoch = divmod(self.step, self.steps_per_epoch)
+                batches = self.epoch_batches(epoch, batch_in_epoch * args.gradient_accumulation_steps)
+                steps_this_epoch = min(self.steps_per_epoch - batch_in_epoch, self.max_steps - self.step)
+                for _ in range(steps_this_epoch):
+                    if self.train_one_step(batches, bar, stop_signal):
+                        bar.close()
+                        return
+            bar.close()
+            if args.eval_every_n_steps > 0 and self.step % args.eval_every_n_steps:
+                self.log_eval()
+            if self.checkpoint_every > 0 and self.last_saved_step != self.step:
+                self.save_checkpoint()
+            self.save_final()
+
+    def train_one_step(self, batches, bar, stop_signal) -> bool:
+        """One optimizer step; returns True when the run must stop now (SIGTERM)."""
+        args, t0 = self.args, time.perf_counter()
+        ga = args.gradient_accumulation_steps
+        micro_batches = [self.collate(next(batches), batch_seed(args.seed, self.rank, self.step, i))
+                         for i in range(ga)]
+        loss = self.forward_backward(micro_batches)
+        grad_norm, finite, stop = self.optimizer_step(loss, stop_signal.requested)
+        self.step += 1
+        loss_value = loss.item()
+        self.handle_nonfinite(finite, loss_value)
+        lr = self.scheduler.get_last_lr()[0]
+        tokens_per_s = self.tokens_per_step / (time.perf_counter() - t0)
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss_value:.4f}", lr=f"{lr:.2e}", tok_s=f"{tokens_per_s:,.0f}")
+        self.accelerator.log({"train_loss": loss_value, "lr": lr, "grad_norm": float(grad_norm),
+                              "tokens_per_s": tokens_per_s}, step=self.step)
+        if args.eval_every_n_steps > 0 and self.step % args.eval_every_n_steps == 0:
+            self.log_eval()
+        if stop:
+            if self.last_saved_step != self.step:
+                self.save_checkpoint()
+            logger.warning("SIGTERM: stopped at step %d with its training state saved; resume with "
+                           "--resume_from_checkpoint latest", self.step)
+            return True
+        if self.checkpoint_every > 0 and self.step % self.checkpoint_every == 0:
+            self.save_checkpoint()
+        if args.debug_step_sleep > 0:
+            time.sleep(args.debug_step_sleep)
+        return False
+
+    def save_final(self) -> None:
+        if self.accelerator.is_main_process:
+            path = Path(self.args.output_dir) / "final_checkpt"
+            with atomic_directory(path) as tmp:
+                self.model.save_pretrained(tmp)
+            logger.info("saved the final model to %s", path)
+        self.accelerator.wait_for_everyone()
+
+
+def check_tracker_installed(report_to: str) -> None:
+    """accelerate silently drops a tracker whose package is missing; say so instead."""
+    packages = {"none": [], "tensorboard": ["tensorboard", "tensorboardX"], "wandb": ["wandb"]}[report_to]
+    if packages and not any(importlib.util.find_spec(p) for p in packages):
+        raise TrainingError(f"--report_to {report_to} needs the {packages[0]} package: pip install {packages[0]}")
+
+
+def setup_logging(accelerator: Accelerator) -> None:
+    logging.basicConfig(format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S",
+                        level=logging.INFO if accelerator.is_main_process else logging.WARNING)
+    logger.setLevel(logging.INFO if accelerator.is_main_process else logging.WARNING)
+
+
+def run(args) -> None:
+    mixed = args.mixed_precision
+    if mixed == "auto":
+        mixed = "bf16" if torch.cuda.is_available() else "no"
+    check_tracker_installed(args.report_to)
+    # A multi-process launch on a machine without CUDA (torchrun, `accelerate launch --multi_gpu`) must ask for
+    # CPU explicitly: only then does accelerate set up DDP over gloo instead of running independent copies.
+    launched_world = int(os.environ.get("WORLD_SIZE", "0"))
+    accelerator = Accelerator(mixed_precision=mixed, log_with=None if args.report_to == "none" else args.report_to,
+                              project_dir=args.output_dir, cpu=launched_world > 1 and not torch.cuda.is_available())
+    setup_logging(accelerator)
+    if launched_world and launched_world != accelerator.num_processes:
+        raise TrainingError(f"launched as {launched_world} processes (WORLD_SIZE) but accelerate set up "
+                            f"{accelerator.num_processes}; each process would train alone")
+    if accelerator.num_processes == 1 and os.environ.get("ACCELERATE_USE_CPU", "").lower() == "true" \
+            and "MASTER_ADDR" in os.environ:
+        logger.warning("`accelerate launch --cpu --num_processes N` starts a single process unless MPI is set up "
+                       "(--mpirun_hostfile); for N CPU processes use `accelerate launch --multi_gpu "
+                       "--num_processes N train.py` or `torchrun --nproc_per_node N train.py` on a machine without "
+                       "GPUs. Training with 1 process.")
+    if accelerator.device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    set_seed(args.seed)
+    config = load_config(args.genie_config)
+    if accelerator.is_main_process:
+        Path(args.output_dir).mkdir(parents=True, exist_ok=True)
+        remove_stale_temp_dirs(args.output_dir)
+    accelerator.wait_for_everyone()
+    trainer = Trainer(args, accelerator, config)
+    accelerator.init_trackers("genie", config={k: v if isinstance(v, (int, float, str, bool)) else str(v)
+                                               for k, v in {**vars(args), **config.to_dict()}.items()})
+    try:
+        trainer.train()
+    finally:
+        accelerator.end_training()
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    try:
+        run(args)
+    except (TrainingError, TrainingStateError, CheckpointError, ConfigError, TokenDatasetError, OSError) as e:
+        logger.error("%s", e)
+        sys.exit(f"train.py: error: {e}")
+
+
+if __name__ == "__main__":
+    main()
