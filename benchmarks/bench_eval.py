@@ -43,6 +43,9 @@ def parse_args():
     p.add_argument("--dtype", choices=("fp32", "bf16"), default="fp32", help="bf16 runs under autocast (CUDA).")
     p.add_argument("--seed", type=int, default=0, help="Seed of the weights, data and sampler.")
     p.add_argument("--skip_generation", action="store_true", help="Only benchmark teacher-forced evaluation.")
+    p.add_argument("--num_threads", type=int, default=None,
+                   help="CPU threads for torch (default: torch's choice). On a busy shared machine, 1 thread gives "
+                        "steadier timings: small multi-threaded ops stall when the cores are oversubscribed.")
     return p.parse_args()
 
 
@@ -98,39 +101,53 @@ def cached_teacher_forced(model, x_BTHW, maskgit_steps, generator):
     return model.teacher_forced(x_BTHW, maskgit_steps, generator=generator)
 
 
-def timed_eval(fn, model, windows, args, device, autocast):
-    """-> (s per generated frame, CE, acc, samples)"""
-    generator = torch.Generator(device=device).manual_seed(args.seed)
-    elapsed, ce_sum, correct, samples_all = 0.0, 0.0, 0, []
+class Timer:
+    """Accumulates wall-clock and process CPU seconds (CPU time is steadier on a busy machine with 1 thread)."""
+
+    def __init__(self, device):
+        self.device, self.wall, self.cpu = device, 0.0, 0.0
+
+    @contextlib.contextmanager
+    def __call__(self):
+        sync(self.device)
+        wall, cpu = time.perf_counter(), time.process_time()
+        yield
+        sync(self.device)
+        self.wall += time.perf_counter() - wall
+        self.cpu += time.process_time() - cpu
+
+
+def compare_evaluators(model, windows, args, device, autocast) -> dict:
+    """Both evaluators on every batch, interleaved so that both see the same machine load.
+
+    -> {name: (Timer, CE, acc, samples)}
+    """
+    evaluators = {"full": full_recompute_teacher_forced, "ours": cached_teacher_forced}
+    state = {name: dict(timer=Timer(device), generator=torch.Generator(device=device).manual_seed(args.seed),
+                        ce=0.0, correct=0, samples=[]) for name in evaluators}
     for a in range(0, len(windows), args.batch_size):
         x = windows[a:a + args.batch_size].to(device)
-        sync(device)
-        start = time.perf_counter()
-        with torch.no_grad(), autocast:
-            samples, logits = fn(model, x, args.maskgit_steps, generator)
-        sync(device)
-        elapsed += time.perf_counter() - start
-        ce_sum += factored_cross_entropy(logits, x[:, 1:]).sum().item()
-        correct += (samples == x[:, 1:]).sum().item()
-        samples_all.append(samples.cpu())
+        for name, fn in evaluators.items():
+            st = state[name]
+            with st["timer"](), torch.no_grad(), autocast:
+                samples, logits = fn(model, x, args.maskgit_steps, st["generator"])
+            st["ce"] += factored_cross_entropy(logits, x[:, 1:]).sum().item()
+            st["correct"] += (samples == x[:, 1:]).sum().item()
+            st["samples"].append(samples.cpu())
     num_tokens = windows[:, 1:].numel()
-    return elapsed / (len(windows) * (windows.shape[1] - 1)), ce_sum / num_tokens, correct / num_tokens, \
-        torch.cat(samples_all)
+    return {name: (st["timer"], st["ce"] / num_tokens, st["correct"] / num_tokens, torch.cat(st["samples"]))
+            for name, st in state.items()}
 
 
-def timed_generation(model, windows, args, device, autocast, use_cache: bool, num_prompt: int = 8) -> float:
+def timed_generation(model, windows, args, device, autocast, use_cache: bool, num_prompt: int = 8) -> Timer:
     generator = torch.Generator(device=device).manual_seed(args.seed)
-    elapsed = 0.0
+    timer = Timer(device)
     for a in range(0, len(windows), args.batch_size):
         prompt = windows[a:a + args.batch_size, :num_prompt].to(device)
-        sync(device)
-        start = time.perf_counter()
-        with autocast:
+        with timer(), autocast:
             model.generate(prompt, windows.shape[1] - num_prompt, args.maskgit_steps, use_cache=use_cache,
                            generator=generator)
-        sync(device)
-        elapsed += time.perf_counter() - start
-    return elapsed / (len(windows) * (windows.shape[1] - num_prompt))
+    return timer
 
 
 def sync(device):
@@ -140,6 +157,8 @@ def sync(device):
 
 def main():
     args = parse_args()
+    if args.num_threads:
+        torch.set_num_threads(args.num_threads)
     device = torch.device(args.device)
     torch.manual_seed(args.seed)
     model = build_model(args).to(device)
@@ -155,23 +174,28 @@ def main():
     with torch.no_grad(), autocast:  # warm-up (allocator, kernels)
         model.teacher_forced(windows[:1].to(device), 1)
 
-    full_s, full_ce, full_acc, full_samples = timed_eval(full_recompute_teacher_forced, model, windows, args, device,
-                                                         autocast)
-    ours_s, ours_ce, ours_acc, ours_samples = timed_eval(cached_teacher_forced, model, windows, args, device,
-                                                         autocast)
+    results = compare_evaluators(model, windows, args, device, autocast)
+    (full_timer, full_ce, full_acc, full_samples), (ours_timer, ours_ce, ours_acc, ours_samples) = \
+        results["full"], results["ours"]
+    frames = len(windows) * (windows.shape[1] - 1)
     same = (full_samples == ours_samples).float().mean().item()
     ce_tol = 1e-4 if args.dtype == "fp32" else 2e-2
     agree = abs(full_ce - ours_ce) <= ce_tol * full_ce and (args.dtype != "fp32" or same > 0.999)
-    print(f"teacher-forced evaluation, s per generated frame: full recomputation {full_s:.4f}, "
-          f"ours (KV cache) {ours_s:.4f}, speed-up {full_s / ours_s:.1f}x")
+    print(f"teacher-forced evaluation, s per generated frame: full recomputation {full_timer.wall / frames:.4f}, "
+          f"ours (KV cache) {ours_timer.wall / frames:.4f}, speed-up {full_timer.wall / ours_timer.wall:.1f}x "
+          f"(process CPU time: {full_timer.cpu / frames:.4f} vs {ours_timer.cpu / frames:.4f}, "
+          f"{full_timer.cpu / ours_timer.cpu:.1f}x)")
     print(f"  metrics: CE {full_ce:.5f} vs {ours_ce:.5f}; acc {full_acc:.5f} vs {ours_acc:.5f}; "
           f"identical sampled tokens {100 * same:.2f}% -> {'agree' if agree else 'DISAGREE'}")
 
     if not args.skip_generation:
+        new_frames = len(windows) * (windows.shape[1] - 8)
         no_cache = timed_generation(model, windows, args, device, autocast, use_cache=False)
         cache = timed_generation(model, windows, args, device, autocast, use_cache=True)
-        print(f"autoregressive generation (8 prompt frames -> 16), s per frame: without cache {no_cache:.4f}, "
-              f"with cache {cache:.4f}, speed-up {no_cache / cache:.1f}x")
+        print(f"autoregressive generation (8 prompt frames -> 16), s per frame: without cache "
+              f"{no_cache.wall / new_frames:.4f}, with cache {cache.wall / new_frames:.4f}, speed-up "
+              f"{no_cache.wall / cache.wall:.1f}x (process CPU time: {no_cache.cpu / new_frames:.4f} vs "
+              f"{cache.cpu / new_frames:.4f}, {no_cache.cpu / cache.cpu:.1f}x)")
     if not agree:
         raise SystemExit("the two evaluators disagree")
 

@@ -24,7 +24,8 @@ SHIPPED_TOKENIZER = "magvit2/pretrained/sample_world_64"
 TOKENIZER_CONFIG = "magvit2/configs/sample_world_64.json"
 # The exact recipe of the shipped tokenizer (see magvit2/pretrained/sample_world_64/README.md).
 TOKENIZER_RECIPE = ["--vq_config", TOKENIZER_CONFIG, "--resolution", "64", "--batch_size", "16",
-                    "--learning_rate", "4e-4", "--max_train_steps", "3000", "--seed", "0", "--no_gan"]
+                    "--learning_rate", "8e-4", "--max_train_steps", "1000", "--perceptual_every", "4",
+                    "--augment", "--max_eval_frames", "512", "--eval_every_n_steps", "500", "--seed", "0", "--no_gan"]
 
 
 def train_tokenizer(raw_dir: Path, output_dir: Path, extra_args=()) -> Path:
@@ -54,7 +55,7 @@ def tokenize_split(raw_npz: Path, out_dir: Path, tokenizer_dir: Path, tokenizer_
                    device: str, overwrite: bool) -> None:
     """Encode one split's npz into a token dataset, unless an up-to-date one is already there."""
     from magvit2 import VQModel
-    from magvit2.tokenize import describe_inputs, tokenize_episodes
+    from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 
     stamp = {"raw": str(raw_npz), "raw_mtime": raw_npz.stat().st_mtime,
              "tokenizer_mtime": (tokenizer_dir / "model.safetensors").stat().st_mtime}
@@ -74,6 +75,9 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out_dir", default="data/sample", help="root of the sample world (raw/, train/, val/)")
     p.add_argument("--seed", type=int, default=0, help="seed of the episode generator")
+    p.add_argument("--train_episodes", type=int, default=3,
+                   help="episodes per training map (8 maps); validation gets 1 held-out episode per map + 1 held-out map")
+    p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
     p.add_argument("--tokenizer", default=SHIPPED_TOKENIZER,
                    help="tokenizer checkpoint directory used to encode the frames (default: the shipped one)")
     p.add_argument("--train_tokenizer", action="store_true",
@@ -89,7 +93,8 @@ def main(argv=None):
     args = parse_args(argv)
     out = Path(args.out_dir)
     raw = out / "raw"
-    build_sample_world(raw, seed=args.seed, overwrite=args.overwrite)
+    build_sample_world(raw, seed=args.seed, train_episodes=args.train_episodes, val_episodes=1,
+                       episode_len=args.episode_len, overwrite=args.overwrite)
     if args.train_tokenizer:
         tokenizer_dir = train_tokenizer(raw, out / "tokenizer")
         tokenizer_ref = str(tokenizer_dir)

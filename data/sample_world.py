@@ -1,27 +1,27 @@
 """Sample world: first-person walks through Freedoom 2 maps rendered headless by ViZDoom, with per-frame actions.
 
-This is the offline stand-in for the 1X robot videos: an explorer policy walks through a map with no monsters, and
-every game tic (35 Hz) we record a 64x64 RGB frame, the buttons pressed and a `driving_command`.
+The offline stand-in for the 1X robot videos: an explorer policy walks through maps with no monsters, HUD, weapon
+or sound, and every game tic (35 Hz, so the challenge's 16-frame windows at stride 15 span 6.9 s) we record a
+64x64 RGB frame (160x120 render, centre crop 120x120, area resize, gamma 1.5), the buttons held and a
+`driving_command`. Each split is one .npz:
+- `frames` (N, 64, 64, 3) uint8; `segment_ids` (N,) int32, one id per episode, increasing; `hz` = 35;
+  `maps` (E,) and `episode_seeds` (E,) per episode; `button_names`.
+- `actions_buttons` (N, 5) float32 0/1 in the order MOVE_FORWARD, MOVE_BACKWARD, TURN_LEFT, TURN_RIGHT, USE:
+  row t is what was held during the tic that leads from frame t to frame t+1.
+- `actions_driving_command` (N, 2) float32 = (linear, angular) velocity over that same tic, the forward difference
+  of the pose from frame t to frame t+1 (the motion commanded at frame t, like the 1X robot's): linear = the
+  displacement projected on the heading at frame t in map units/s (64 units ~ 2 m; top speed about 146, and Doom
+  momentum makes it ramp up and coast for a few tics); angular = heading change in rad/s, counter-clockwise
+  positive, so TURN_LEFT gives +1.07 and TURN_RIGHT -1.07.
+- `poses` (N, 3) float32 = (x, y, heading in degrees) at frame t.
+No strafing, so (linear, angular) fully describes the motion, as for a wheeled base. The walker moves at half of
+Doom's walking and turning speed (ViZDoom delta inputs), so that one model step (15 tics) turns the view at most 26
+degrees and moves it at most ~62 units instead of 53 degrees and 125: consecutive model frames still overlap.
 
-Conventions (also stored in each .npz):
-- `buttons` (N, 5) float32 0/1 in the order of BUTTON_NAMES: MOVE_FORWARD, MOVE_BACKWARD, TURN_LEFT, TURN_RIGHT, USE.
-  Button row t is what was held during the tic that leads from frame t to frame t+1.
-- `driving_command` (N, 2) float32 = (linear, angular) velocity over that same tic, from the pose change between
-  frame t and frame t+1 (a forward difference, so it describes the motion commanded at frame t, like the 1X robot's):
-  linear = displacement projected on the heading at frame t, in map units/s (64 map units ~ 2 m; the walker's top
-  speed is about 146 units/s, and Doom momentum makes it ramp up and coast for a few tics); angular = heading
-  change in rad/s, counter-clockwise positive, so TURN_LEFT gives a positive angular velocity (about 1.07 rad/s).
-- `poses` (N, 3) float32 = (x, y, heading in degrees) at frame t, for checks and plots.
-- No strafing: (linear, angular) then fully describes the commanded motion, as for a wheeled base.
-- The walker moves at half of Doom's walking and turning speed (WorldConfig.walk_speed / turn_speed, sent as
-  ViZDoom delta inputs), so that over the challenge's model step (15 frames, 0.43 s) the view turns about 26
-  degrees and moves about 60 units instead of 53 degrees and 125 units: consecutive model frames overlap enough
-  to be predictable.
-
-Episodes start at a random deathmatch start of the map (Doom's `-deathmatch` spawn, chosen by the engine seed)
-followed by an unrecorded warm-up walk of random length, so episodes on the same map begin at different places.
-God mode keeps the walker alive on damaging floors. The default validation split uses held-out episodes on the
-training maps plus one map never seen in training (HELDOUT_MAPS).
+Episodes start at a random deathmatch spawn spot (chosen by the engine seed) after an unrecorded warm-up walk of
+random length, in god mode (damaging floors). An episode that a teleporter or a level exit cuts short, or whose
+walker stays trapped in a closet, is replayed with the next seed (is_good_episode). Validation = held-out episodes
+(other seeds) on every training map plus every episode of HELDOUT_MAPS, a map never seen in training.
 
 Usage:
     python -m data.sample_world --out_dir data/sample/raw --seed 0
@@ -30,6 +30,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import math
 import multiprocessing
 import os
 import struct
@@ -46,7 +47,7 @@ from tqdm import tqdm
 
 HZ = 35  # Doom's fixed tic rate; we record every tic.
 BUTTON_NAMES = ("MOVE_FORWARD", "MOVE_BACKWARD", "TURN_LEFT", "TURN_RIGHT", "USE")
-# Maps with enough light, room to walk and no level exit near the spawn points; MAP18 is never used for training.
+# Maps that render well (light, room to walk) and look alike; the held-out map is never used for training.
 TRAIN_MAPS = ("MAP01", "MAP04", "MAP05", "MAP09", "MAP10", "MAP12", "MAP13", "MAP15")
 HELDOUT_MAPS = ("MAP18",)
 MAX_STEP = 30.0  # map units per tic; Doom caps momentum here, so a longer step is a teleport
@@ -71,13 +72,14 @@ class WorldConfig:
     """Rendering and explorer-policy settings. Depth thresholds are in depth-buffer units (about 7 map units each)."""
 
     frame_size: int = 64  # output frames are frame_size x frame_size RGB
+    gamma: float = 1.5  # brighten Doom's dark sectors (like its own gamma-correction setting); 1 = unchanged
     walk_speed: float = 12.5  # forward/backward input while a move button is held (Doom's walk is 25)
     turn_speed: float = 1.75  # degrees per tic while a turn button is held (Doom's turn is 3.5)
-    warmup_min_tics: int = 35  # unrecorded random-length walk before recording (the player is frozen for
-    warmup_max_tics: int = 400  # the first few tics of an episode)
-    near_depth: int = 7  # obstacle closer than this straight ahead: turn in place ...
-    clear_depth: int = 24  # ... until the way ahead is free at least this far
-    caution_depth: int = 16  # closer than this: curve away while walking
+    warmup_min_tics: int = 35  # unrecorded warm-up walk of random length in [min, max] tics (the player is
+    warmup_max_tics: int = 400  # frozen for the first few tics of an episode)
+    near_depth: int = 12  # obstacle closer than this straight ahead: turn in place ...
+    clear_depth: int = 28  # ... until the way ahead is free at least this far
+    caution_depth: int = 20  # closer than this: curve away while walking
     stuck_window: int = 12  # tics of forward motion over which we check progress
     stuck_distance: float = 10.0  # map units; less progress than this over the window means stuck
     use_prob: float = 0.5  # chance to press USE (open a door) when stuck
@@ -87,10 +89,13 @@ class WorldConfig:
     turn_weight: float = 0.12
     backward_weight: float = 0.05
     open_side_prob: float = 0.7  # chance that a random turn goes towards the more open side
+    max_attempts: int = 4  # seeds tried per episode until one passes is_good_episode
+    min_episode_frac: float = 0.5  # shorter walks (cut by a teleporter or a level exit) are retried
+    min_cells_per_1000_tics: float = 8.0  # fewer distinct 64x64-unit cells visited means trapped: retried
 
     def __post_init__(self):
-        if self.frame_size < 8:
-            raise ValueError(f"WorldConfig.frame_size must be >= 8, got {self.frame_size}")
+        if self.frame_size < 8 or self.gamma <= 0:
+            raise ValueError(f"WorldConfig needs frame_size >= 8 and gamma > 0, got {self.frame_size}, {self.gamma}")
         if not 0 < self.near_depth < self.caution_depth <= self.clear_depth:
             raise ValueError("WorldConfig needs 0 < near_depth < caution_depth <= clear_depth")
 
@@ -155,7 +160,7 @@ class ExplorerPolicy:
         if len(self.forward_xy) < self.forward_xy.maxlen:
             return False
         (x0, y0), (x1, y1) = self.forward_xy[0], self.forward_xy[-1]
-        return np.hypot(x1 - x0, y1 - y0) < self.cfg.stuck_distance
+        return math.hypot(x1 - x0, y1 - y0) < self.cfg.stuck_distance
 
     def __call__(self, depth_HW: np.ndarray, xy) -> tuple:
         cfg, rng = self.cfg, self.rng
@@ -170,9 +175,11 @@ class ExplorerPolicy:
                 self._start("forward", _hold(rng, 10, 30))
             return _ACTIONS["forward"]
         elif self.action == "avoid":
-            # Keep turning until the view is open, not merely until the wall leaves the centre.
+            # Keep turning until the view is open, not merely until the wall leaves the centre; after half a
+            # turn without such a view, settle for less.
             self.spin_tics += 1
-            if ahead >= cfg.clear_depth:
+            needed = cfg.clear_depth if self.spin_tics * cfg.turn_speed < 180 else cfg.caution_depth
+            if ahead >= needed:
                 self._start("forward", _hold(rng, 20, 60))
             elif self.spin_tics > self.trapped_tics:  # walls all around: maybe a closed door
                 self._start("use", cfg.use_wait_tics)
@@ -262,12 +269,19 @@ def make_game(map_name: str, cfg: WorldConfig):
     return game
 
 
-def preprocess_frame(screen_HWC: np.ndarray, size: int) -> np.ndarray:
-    """Center-crop an (H, W, 3) uint8 screen to (H, H) and resize to (size, size, 3) uint8 with an area filter."""
+def gamma_table(gamma: float) -> list:
+    """PIL point() table for RGB (3 x 256 entries) brightening dark tones: out = 255 * (in / 255) ** (1 / gamma)."""
+    table = [round(255.0 * (i / 255.0) ** (1.0 / gamma)) for i in range(256)]
+    return table * 3
+
+
+def preprocess_frame(screen_HWC: np.ndarray, size: int, gamma_lut: list) -> np.ndarray:
+    """Center-crop an (H, W, 3) uint8 screen to (H, H), resize to (size, size, 3) uint8 with an area filter and
+    apply the gamma table."""
     H, W, _ = screen_HWC.shape
     x0 = (W - H) // 2
     crop = np.ascontiguousarray(screen_HWC[:, x0: x0 + H])
-    return np.asarray(Image.fromarray(crop).resize((size, size), Image.Resampling.BOX))
+    return np.asarray(Image.fromarray(crop).resize((size, size), Image.Resampling.BOX).point(gamma_lut))
 
 
 def driving_command(poses_N3: np.ndarray, hz: float) -> np.ndarray:
@@ -293,7 +307,7 @@ def engine_action(buttons, cfg: WorldConfig) -> list:
 
 def _is_cut(pose0, pose1, buttons, cfg: WorldConfig) -> bool:
     """True when pose0 -> pose1 is no walking step: a teleporter moved the player or set its heading."""
-    step = np.hypot(pose1[0] - pose0[0], pose1[1] - pose0[1])
+    step = math.hypot(pose1[0] - pose0[0], pose1[1] - pose0[1])
     turn = (pose1[2] - pose0[2] + 180.0) % 360.0 - 180.0
     expected_turn = (buttons[2] - buttons[3]) * cfg.turn_speed
     return step > MAX_STEP or abs(turn - expected_turn) > 1.0
@@ -311,6 +325,7 @@ def run_episode(game, episode_len: int, seed: int, cfg: WorldConfig) -> dict:
     game.new_episode()
     game.send_game_command("god")
     policy = ExplorerPolicy(cfg, rng)
+    gamma_lut = gamma_table(cfg.gamma)
 
     for _ in range(int(rng.integers(cfg.warmup_min_tics, cfg.warmup_max_tics + 1))):
         if game.is_episode_finished():
@@ -328,7 +343,7 @@ def run_episode(game, episode_len: int, seed: int, cfg: WorldConfig) -> dict:
         if len(frames) == episode_len:
             break
         buttons = policy(state.depth_buffer, pose[:2])
-        frames.append(preprocess_frame(state.screen_buffer, cfg.frame_size))
+        frames.append(preprocess_frame(state.screen_buffer, cfg.frame_size, gamma_lut))
         buttons_list.append(buttons)
         game.make_action(engine_action(buttons, cfg))
     n = len(poses) - 1  # a frame needs the next pose for its driving command
@@ -341,21 +356,42 @@ def run_episode(game, episode_len: int, seed: int, cfg: WorldConfig) -> dict:
     }
 
 
-def episode_seed(seed: int, split: str, map_name: str, episode: int) -> int:
-    """Seed of one episode; distinct (split, map, episode) give independent streams, so splits are disjoint."""
-    key = (zlib.crc32(split.encode()), zlib.crc32(map_name.encode()), episode)
+def episode_seed(seed: int, split: str, map_name: str, episode: int, attempt: int = 0) -> int:
+    """Seed of one episode attempt; distinct (split, map, episode, attempt) give independent streams, so the
+    train and val splits never share an episode."""
+    key = (zlib.crc32(split.encode()), zlib.crc32(map_name.encode()), episode, attempt)
     return int(np.random.SeedSequence(seed, spawn_key=key).generate_state(1)[0])
 
 
+def is_good_episode(ep: dict, episode_len: int, cfg: WorldConfig) -> bool:
+    """Reject walks cut short (level exit, teleporter) and walkers trapped in a closet (few 64-unit cells seen)."""
+    n = len(ep["frames"])
+    if n < cfg.min_episode_frac * episode_len:
+        return False
+    cells = len(np.unique(np.floor(ep["poses"][:, :2] / 64.0), axis=0))
+    return cells * 1000 >= cfg.min_cells_per_1000_tics * n
+
+
 def _run_task(task) -> list:
-    """Worker entry point: (map_name, [(episode, seed), ...], episode_len, cfg dict) -> list of episode dicts."""
-    map_name, episodes, episode_len, cfg_dict = task
+    """Worker entry point: (map, split, seed, episode indices, episode_len, cfg dict) -> list of episode dicts.
+
+    Each episode tries seeds attempt 0, 1, ... until is_good_episode (keeping the last try after max_attempts).
+    """
+    map_name, split, seed, episodes, episode_len, cfg_dict = task
     cfg = WorldConfig(**cfg_dict)
     game = make_game(map_name, cfg)
+    results = []
     try:
-        return [run_episode(game, episode_len, seed, cfg) for _, seed in episodes]
+        for episode in episodes:
+            for attempt in range(cfg.max_attempts):
+                ep_seed = episode_seed(seed, split, map_name, episode, attempt)
+                ep = run_episode(game, episode_len, ep_seed, cfg)
+                if is_good_episode(ep, episode_len, cfg):
+                    break
+            results.append({**ep, "seed": ep_seed})
     finally:
         game.close()
+    return results
 
 
 def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int, seed: int, *,
@@ -373,19 +409,15 @@ def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int,
                          f"{episode_len}, {workers}")
     check_maps(maps)
     episode_maps = [m for m in maps for _ in range(episodes_per_map)]
-    seeds = [episode_seed(seed, split, m, e) for m in maps for e in range(episodes_per_map)]
-    tasks = []
-    for m_i, m in enumerate(maps):
-        eps = [(e, seeds[m_i * episodes_per_map + e]) for e in range(episodes_per_map)]
-        for i in range(0, len(eps), episodes_per_task):
-            tasks.append((m, eps[i: i + episodes_per_task], episode_len, dataclasses.asdict(cfg)))
+    tasks = [(m, split, seed, list(range(i, min(i + episodes_per_task, episodes_per_map))), episode_len,
+              dataclasses.asdict(cfg)) for m in maps for i in range(0, episodes_per_map, episodes_per_task)]
 
     # Frames go straight into one preallocated buffer: the split may be several GB, so never hold it twice.
-    frames = np.empty((len(seeds) * episode_len, cfg.frame_size, cfg.frame_size, 3), dtype=np.uint8)
+    frames = np.empty((len(episode_maps) * episode_len, cfg.frame_size, cfg.frame_size, 3), dtype=np.uint8)
     num_frames, episodes = 0, []
     # The platform's default start method (fork on Linux: workers skip re-importing torch via `data`).
     pool = multiprocessing.Pool(workers) if workers > 1 else contextlib.nullcontext()
-    with pool, tqdm(total=len(seeds), desc=f"sample world {split}", unit="episode", disable=not progress) as bar:
+    with pool, tqdm(total=len(episode_maps), desc=f"sample world {split}", unit="episode", disable=not progress) as bar:
         for result in (pool.imap(_run_task, tasks) if workers > 1 else map(_run_task, tasks)):
             for ep in result:
                 n = len(ep["frames"])
@@ -403,7 +435,7 @@ def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int,
         "poses": np.concatenate([ep["poses"] for ep in episodes]),
         "hz": np.int32(HZ),
         "maps": np.array(episode_maps),
-        "episode_seeds": np.array(seeds, dtype=np.uint32),
+        "episode_seeds": np.array([ep["seed"] for ep in episodes], dtype=np.uint32),
         "button_names": np.array(BUTTON_NAMES),
     }
 
@@ -427,7 +459,7 @@ def save_split(path, data: dict):
 
 
 def build_sample_world(out_dir, seed: int = 0, train_maps: Sequence[str] = TRAIN_MAPS,
-                       val_maps: Sequence[str] = TRAIN_MAPS + HELDOUT_MAPS, train_episodes: int = 11,
+                       val_maps: Sequence[str] = TRAIN_MAPS + HELDOUT_MAPS, train_episodes: int = 10,
                        val_episodes: int = 1, episode_len: int = 2000, workers: int = 2,
                        overwrite: bool = False, cfg: Optional[WorldConfig] = None) -> bool:
     """Write out_dir/train.npz, out_dir/val.npz and a JSON sidecar of the parameters.
@@ -475,7 +507,7 @@ def main():
     p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS), help="freedoom2.wad maps for training")
     p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
                    help="maps for validation (held-out episodes on these maps; default adds the held-out map)")
-    p.add_argument("--train_episodes", type=int, default=11, help="training episodes per training map")
+    p.add_argument("--train_episodes", type=int, default=10, help="training episodes per training map")
     p.add_argument("--val_episodes", type=int, default=1, help="validation episodes per validation map")
     p.add_argument("--episode_len", type=int, default=2000, help="recorded tics (frames) per episode, 35 per second")
     p.add_argument("--workers", type=int, default=2, help="processes generating episodes in parallel")

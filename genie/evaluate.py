@@ -24,10 +24,13 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
+from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.config import ConfigError
 from genie.evaluation import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
 from genie.st_mask_git import CheckpointError, STMaskGIT
+from magvit2 import VQModel
+from magvit2.lpips import LPIPS
 
 logger = logging.getLogger("evaluate")
 
@@ -110,8 +113,6 @@ class FrameScorer:
     """Decodes token frames with the MAGVIT2 tokenizer and scores predictions with AlexNet LPIPS."""
 
     def __init__(self, tokenizer_ckpt: str, device: torch.device):
-        from magvit2 import VQModel
-        from magvit2.lpips import LPIPS
         self.tokenizer = VQModel.from_checkpoint(tokenizer_ckpt, map_location=device).eval()
         self.lpips = LPIPS().to(device)
 
@@ -184,7 +185,6 @@ def score_frames(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tens
 
 def save_outputs(out_dir: str, windows: list, dataset, window_size: int) -> None:
     """Write evaluated windows in the generated layout (FORMATS.md 1), one segment id per window."""
-    from data import write_token_dataset
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
         meta_path = out / "metadata.json"
@@ -202,7 +202,6 @@ def save_outputs(out_dir: str, windows: list, dataset, window_size: int) -> None
 
 
 def run(args: argparse.Namespace) -> dict:
-    from data import RawTokenDataset
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     if world_size > 1:
         raise EvaluationError(f"evaluation runs in a single process, but WORLD_SIZE={world_size}: launch it with "
@@ -236,7 +235,6 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def main(argv=None) -> int:
-    from data import TokenDatasetError
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     args = parse_args(argv)
     try:

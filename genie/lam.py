@@ -40,6 +40,7 @@ class LAMConfig:
     channels: list[int] = field(default_factory=lambda: [16, 32, 64])  # conv widths; each level halves the size
     num_attention_blocks: int = 1  # self-attention blocks at the bottleneck of encoder and decoder (global motion)
     num_heads: int = 4
+    predict_flow: bool = True  # the decoder warps the last past frame by a predicted flow before adding a residual
     latent_dim: int = 32  # width of the continuous action vector and of the codes
     codebook_size: int = 8
     l2_normalize_codes: bool = False  # cosine codebook; euclidean (default) kept codes apart better in tests
@@ -202,7 +203,9 @@ class FrameDecoder(nn.Module):
     """Past frames + action vector -> next frame (B, C, H, W), predicted as a change of the last past frame.
 
     A U-Net over the past frames only, with attention at the bottleneck; the action enters by FiLM in every decoder
-    block and before the output.
+    block and before the output. With predict_flow, the output is the last past frame warped by a predicted flow
+    field plus a residual: camera motion, the typical action, then costs the decoder a smooth flow instead of
+    re-synthesising every moved pixel, so the code has a cheap way to pay off.
     """
 
     def __init__(self, cfg: LAMConfig):
@@ -217,6 +220,17 @@ class FrameDecoder(nn.Module):
         self.out_norm = _norm(chans[0])
         self.out_film = FiLM(cfg.latent_dim, chans[0])
         self.out = nn.ConvTranspose2d(chans[0], cfg.image_channels, 4, stride=2, padding=1)
+        self.flow = nn.ConvTranspose2d(chans[0], 2, 4, stride=2, padding=1) if cfg.predict_flow else None
+        if self.flow is not None:  # start from the identity warp
+            nn.init.zeros_(self.flow.weight)
+            nn.init.zeros_(self.flow.bias)
+
+    def _warp(self, frame_BCHW: torch.Tensor, flow_B2HW: torch.Tensor) -> torch.Tensor:
+        """Sample frame at (identity grid + flow); flow in grid_sample's [-1, 1] units, (x, y) channels."""
+        identity_B23 = torch.eye(2, 3, device=frame_BCHW.device, dtype=frame_BCHW.dtype).expand(len(frame_BCHW), 2, 3)
+        grid_BHW2 = F.affine_grid(identity_B23, list(frame_BCHW.shape), align_corners=False)
+        grid_BHW2 = grid_BHW2 + rearrange(flow_B2HW, "b two h w -> b h w two")
+        return F.grid_sample(frame_BCHW, grid_BHW2, padding_mode="border", align_corners=False)
 
     def forward(self, past_BPCHW: torch.Tensor, action_BD: torch.Tensor) -> torch.Tensor:
         skips = self.convs(rearrange(past_BPCHW, "b p c h w -> b (p c) h w"))
@@ -227,7 +241,11 @@ class FrameDecoder(nn.Module):
             if i < len(skips) - 1:
                 h = self.ups[i](F.silu(h)) + skips[i]
             h = self.blocks[i](h, action_BD)
-        return past_BPCHW[:, -1] + self.out(F.silu(self.out_film(self.out_norm(h), action_BD)))
+        h = F.silu(self.out_film(self.out_norm(h), action_BD))
+        base_BCHW = past_BPCHW[:, -1]
+        if self.flow is not None:
+            base_BCHW = self._warp(base_BCHW, self.flow(h).to(base_BCHW.dtype))
+        return base_BCHW + self.out(h)
 
 
 @dataclass

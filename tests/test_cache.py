@@ -1,4 +1,4 @@
-"""Cached inference (temporal KV cache) equals full recomputation: logits and samples, generation and teacher forcing."""
+"""Cached inference (temporal KV cache) equals full recomputation: logits and samples, generate and teacher_forced."""
 import pytest
 import torch
 

@@ -93,6 +93,19 @@ def test_driving_command_convention():
     np.testing.assert_allclose(dc[3], [0, np.deg2rad(2) * 35], atol=1e-4)  # 359 -> 1 is +2 degrees
 
 
+def _fake_episode(poses):
+    return {"frames": np.zeros((len(poses), 64, 64, 3), np.uint8), "poses": poses}
+
+
+def test_is_good_episode_rejects_short_and_trapped_walks():
+    n = 400
+    walk = np.stack([np.arange(n) * 4.0, np.zeros(n), np.zeros(n)], axis=1)  # 4 units per tic to the east
+    closet = np.stack([np.full(n, 10.0), np.full(n, 10.0), np.arange(n) % 360.0], axis=1)  # spinning in place
+    assert sw.is_good_episode(_fake_episode(walk), n, FAST)
+    assert not sw.is_good_episode(_fake_episode(closet), n, FAST)
+    assert not sw.is_good_episode(_fake_episode(walk[: n // 4]), n, FAST)  # cut by a teleporter or an exit
+
+
 def test_same_seed_is_byte_identical_and_seeds_differ():
     kwargs = dict(maps=("MAP09",), episodes_per_map=1, episode_len=80, cfg=FAST, progress=False)
     a = sw.generate_split(seed=3, **kwargs)
@@ -113,9 +126,9 @@ def test_workers_do_not_change_the_result():
 
 def test_train_and_val_are_disjoint():
     assert not set(sw.HELDOUT_MAPS) & set(sw.TRAIN_MAPS)
-    seeds = {split: {sw.episode_seed(0, split, m, e) for m in sw.TRAIN_MAPS for e in range(50)}
-             for split in ("train", "val")}
-    assert len(seeds["train"]) == len(seeds["val"]) == 50 * len(sw.TRAIN_MAPS)
+    seeds = {split: {sw.episode_seed(0, split, m, e, attempt) for m in sw.TRAIN_MAPS for e in range(50)
+                     for attempt in range(FAST.max_attempts)} for split in ("train", "val")}
+    assert len(seeds["train"]) == len(seeds["val"]) == 50 * len(sw.TRAIN_MAPS) * FAST.max_attempts
     assert not seeds["train"] & seeds["val"]
     kwargs = dict(maps=("MAP01",), episodes_per_map=1, episode_len=40, seed=0, cfg=FAST, progress=False)
     train = sw.generate_split(split="train", **kwargs)

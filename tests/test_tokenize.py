@@ -1,4 +1,4 @@
-"""magvit2.tokenize: frames + actions + segment ids -> token dataset that data.RawTokenDataset reads back."""
+"""magvit2.tokenize_frames: frames + actions + segment ids -> token dataset that data.RawTokenDataset reads back."""
 import json
 
 import numpy as np
@@ -8,7 +8,7 @@ from PIL import Image
 
 from data import RawTokenDataset
 from magvit2 import VQConfig, VQModel
-from magvit2.tokenize import main, tokenize_frames
+from magvit2.tokenize_frames import main, tokenize_frames
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ Inputs, in the order given:
 Segment ids stay distinct across inputs: an input's ids are shifted, when needed, to start after the previous one's.
 All inputs are checked (shapes, action names, hz) before anything is encoded.
 
-    python -m magvit2.tokenize episodes/ --tokenizer_ckpt data/magvit2.ckpt --output_dir data/my_robot
+    python -m magvit2.tokenize_frames episodes/ --tokenizer_ckpt data/magvit2.ckpt --output_dir data/my_robot
 """
 import argparse
 import logging
