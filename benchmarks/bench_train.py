@@ -33,7 +33,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--warmup_steps", type=int, default=2, help="Untimed steps first.")
     p.add_argument("--steps", type=int, default=5, help="Timed steps.")
     p.add_argument("--device", default="cpu", help="torch device.")
-    p.add_argument("--mixed_precision", default="no", choices=("no", "bf16"), help="bf16 autocast (CUDA).")
+    p.add_argument("--mixed_precision", default="no", choices=("no", "bf16"),
+                   help="bf16 autocast (CUDA, or CPUs with native bf16 such as avx512_bf16).")
     p.add_argument("--compile", action="store_true", help="torch.compile the model.")
     p.add_argument("--profile", action="store_true", help="Print the top operators of one profiled step.")
     return p.parse_args(argv)

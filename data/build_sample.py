@@ -23,9 +23,9 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_TOKENIZER = "magvit2/pretrained/sample_world_64"
 TOKENIZER_CONFIG = "magvit2/configs/sample_world_64.json"
 # The exact recipe of the shipped tokenizer (see magvit2/pretrained/sample_world_64/README.md).
-TOKENIZER_RECIPE = ["--vq_config", TOKENIZER_CONFIG, "--resolution", "64", "--batch_size", "16",
-                    "--learning_rate", "8e-4", "--max_train_steps", "1000", "--perceptual_every", "4",
-                    "--augment", "--max_eval_frames", "512", "--eval_every_n_steps", "500", "--seed", "0", "--no_gan"]
+TOKENIZER_RECIPE = ["--vq_config", TOKENIZER_CONFIG, "--resolution", "64", "--batch_size", "8",
+                    "--learning_rate", "1e-3", "--max_train_steps", "600", "--perceptual_every", "4",
+                    "--augment", "--max_eval_frames", "512", "--eval_every_n_steps", "600", "--seed", "0", "--no_gan"]
 
 
 def train_tokenizer(raw_dir: Path, output_dir: Path, extra_args=()) -> Path:
@@ -75,7 +75,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out_dir", default="data/sample", help="root of the sample world (raw/, train/, val/)")
     p.add_argument("--seed", type=int, default=0, help="seed of the episode generator")
-    p.add_argument("--train_episodes", type=int, default=3,
+    p.add_argument("--train_episodes", type=int, default=2,
                    help="episodes per training map (8 maps); validation gets 1 held-out episode per map + 1 held-out map")
     p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
     p.add_argument("--tokenizer", default=SHIPPED_TOKENIZER,

@@ -13,6 +13,7 @@ import argparse
 import logging
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -33,7 +34,7 @@ class GenerationError(ValueError):
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description="Generate future frames (tokens) from a GENIE checkpoint.",
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--val_data_dir", default="data/val_v1.1",
+    p.add_argument("--val_data_dir", default="data/sample/val" if Path("data/sample/val").exists() else "data/val_v1.1",
                    help="Token dataset directory whose windows provide the prompts and the ground truth.")
     p.add_argument("--checkpoint_dir", default="data/genie_model/final_checkpt",
                    help="Hugging Face checkpoint directory (config.json + model.safetensors).")

@@ -1,0 +1,75 @@
+"""Copy-the-last-frame baselines for the challenge metrics (FORMATS.md 5).
+
+    python -m genie.baselines --train_data_dir data/sample/train --val_data_dir data/sample/val
+
+Token accuracy: predict frame t as a copy of ground-truth frame t-1. CE: the best smoothed copy, which puts
+probability p on each factor of the previous frame's token and spreads 1-p uniformly over the other V-1 values;
+the CE-optimal p is the factor match rate, fit on the training split and applied to the validation windows.
+The last stdout line is a JSON object.
+"""
+import argparse
+import json
+import math
+
+import numpy as np
+import torch
+
+from data import RawTokenDataset
+from genie.factorization import factorize_token_ids
+
+
+def frame_pairs(dataset: RawTokenDataset, max_windows: int = None):
+    """Yield (prev_BS, next_BS) int64 token pairs of consecutive window frames, one window at a time."""
+    n = len(dataset) if max_windows is None else min(len(dataset), max_windows)
+    s2 = dataset.metadata["s"] ** 2
+    for i in range(n):
+        x_TS = dataset[i]["input_ids"].view(dataset.window_size, s2)
+        yield x_TS[:-1], x_TS[1:]
+
+
+def factor_match_rate(dataset: RawTokenDataset, num_factors: int, factor_size: int, max_windows: int = None) -> float:
+    matches, total = 0, 0
+    for prev, nxt in frame_pairs(dataset, max_windows):
+        eq = factorize_token_ids(prev, num_factors, factor_size) == factorize_token_ids(nxt, num_factors, factor_size)
+        matches += int(eq.sum())
+        total += eq.numel()
+    return matches / total
+
+
+def copy_baseline(dataset: RawTokenDataset, p: float, num_factors: int, factor_size: int,
+                  max_windows: int = None) -> dict:
+    """Accuracy of copying frame t-1 and CE of the p-smoothed copy, averaged over every token of frames 1..T-1."""
+    p = min(max(p, 1e-6), 1 - 1e-6)
+    hit, miss = -math.log(p), -math.log((1 - p) / (factor_size - 1))
+    acc_sum, ce_sum, n = 0.0, 0.0, 0
+    for prev, nxt in frame_pairs(dataset, max_windows):
+        acc_sum += float((prev == nxt).sum())
+        eq = factorize_token_ids(prev, num_factors, factor_size) == factorize_token_ids(nxt, num_factors, factor_size)
+        ce_sum += float(torch.where(eq, hit, miss).sum())
+        n += prev.numel()
+    return {"copy_acc": acc_sum / n, "smoothed_copy_loss": ce_sum / n, "p": p, "num_tokens": n}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--train_data_dir", default="data/sample/train", help="split used to fit p")
+    parser.add_argument("--val_data_dir", default="data/sample/val", help="split the baselines are measured on")
+    parser.add_argument("--window_size", type=int, default=16, help="frames per window")
+    parser.add_argument("--stride", type=int, default=15, help="frames between consecutive window frames")
+    parser.add_argument("--num_factored_vocabs", type=int, default=2, help="factors per token id")
+    parser.add_argument("--max_train_windows", type=int, default=2000,
+                        help="training windows (non-overlapping) used to fit p")
+    parser.add_argument("--max_examples", type=int, default=None, help="validation windows to use (default: all)")
+    args = parser.parse_args(argv)
+
+    train = RawTokenDataset(args.train_data_dir, args.window_size, args.stride, filter_overlaps=True)
+    val = RawTokenDataset(args.val_data_dir, args.window_size, args.stride, filter_overlaps=True)
+    factor_size = round(val.vocab_size ** (1 / args.num_factored_vocabs))
+    p = factor_match_rate(train, args.num_factored_vocabs, factor_size, args.max_train_windows)
+    result = copy_baseline(val, p, args.num_factored_vocabs, factor_size, args.max_examples)
+    result["num_examples"] = min(len(val), args.max_examples or len(val))
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
