@@ -3,6 +3,8 @@
 
     python train.py --genie_config genie/configs/sample_world.json --output_dir data/genie_model
     python train.py ... --resume_from_checkpoint latest       # continue a killed/preempted run
+    python train.py ... --use_actions buttons,driving_command  # condition on real actions (actions/<name>.bin)
+    python train.py ... --use_latent_actions 8                 # condition on LAM latent actions (latent_action.bin)
     accelerate launch --multi_gpu --num_processes 2 train.py ...   # DDP: NCCL on GPUs, gloo on a CPU-only machine
     torchrun --nproc_per_node 2 train.py ...                       # the same without accelerate's launcher
 
@@ -19,6 +21,7 @@ saving a checkpoint of the last good weights (the data position is past the bad 
 """
 import argparse
 import contextlib
+import dataclasses
 import importlib.util
 import logging
 import math
@@ -39,6 +42,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
 from data import RawTokenDataset, TokenDatasetError, get_maskgit_collator
+from genie.actions import action_columns, action_statistics, latent_action_sidecar, split_actions, stream_dims
 from genie.config import ConfigError, GenieConfig
 from genie.st_mask_git import CheckpointError, STMaskGIT
 from genie.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
@@ -84,6 +88,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--warmstart_path", default=None,
                    help="Hugging Face checkpoint directory (config.json + model.safetensors) whose weights initialize "
                         "the model; the shapes must match --genie_config.")
+    g.add_argument("--use_actions", default=None,
+                   help="Comma-separated real action streams (actions/<name>.bin of the datasets, e.g. "
+                        "buttons,driving_command) to condition on; sets action_names on top of --genie_config. "
+                        "Their mean/std over the training split are stored in the checkpoint's config.json.")
+    g.add_argument("--use_latent_actions", type=int, default=None, metavar="K",
+                   help="Condition on LAM latent actions with codebook size K (ids from actions/latent_action.bin, "
+                        "written by genie/label_latent_actions.py); sets num_latent_actions on top of --genie_config.")
     g.add_argument("--resume_from_checkpoint", default=None,
                    help="'latest' (newest complete checkpoint-<step> in --output_dir; starts fresh if there is none) "
                         "or a checkpoint directory: continue that run exactly.")
@@ -141,6 +152,10 @@ def parse_args(argv=None) -> argparse.Namespace:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     if args.max_train_steps is not None and args.max_train_steps < 0:
         p.error(f"--max_train_steps must be >= 0, got {args.max_train_steps}")
+    if args.use_latent_actions is not None and args.use_latent_actions < 1:
+        p.error(f"--use_latent_actions must be >= 1 (the LAM codebook size), got {args.use_latent_actions}")
+    if args.use_actions is not None and not all(args.use_actions.split(",")):
+        p.error(f"--use_actions must be comma-separated stream names, got {args.use_actions!r}")
     if args.checkpointing_steps != "epoch" and not args.checkpointing_steps.isdigit():
         p.error(f"--checkpointing_steps must be an integer or 'epoch', got {args.checkpointing_steps!r}")
     return args
@@ -180,12 +195,31 @@ def build_datasets(args, config: GenieConfig, batch_items: int):
     return train_ds, val_ds
 
 
+def configure_actions(config: GenieConfig, args, train_ds: RawTokenDataset) -> GenieConfig:
+    """Apply --use_actions / --use_latent_actions and fill action_dim and the normalization statistics (mean/std
+    over the training split) of the real action streams, unless the config already has them for those streams."""
+    names = args.use_actions.split(",") if args.use_actions else config.action_names
+    num_latent = config.num_latent_actions if args.use_latent_actions is None else args.use_latent_actions
+    changes = {"num_latent_actions": num_latent}
+    if names and (names != config.action_names or config.action_mean is None):
+        dim = sum(stream_dims(train_ds, names).values())
+        mean, std = action_statistics(train_ds, names)
+        logger.info("conditioning on actions %s (%d values per frame); mean %s, std %s from %s", names, dim,
+                    np.round(mean, 3).tolist(), np.round(std, 3).tolist(), train_ds.data_dir)
+        changes.update(action_names=names, action_dim=dim, action_mean=mean, action_std=std)
+    return dataclasses.replace(config, **changes)
+
+
 def build_model(config: GenieConfig, warmstart_path) -> STMaskGIT:
     model = STMaskGIT(config)
     model.init_weights()
     if warmstart_path is not None:
         source = STMaskGIT.from_pretrained(warmstart_path)
-        model.load_checkpoint_state_dict(source.state_dict(), source=f"--warmstart_path {warmstart_path}")
+        state = source.state_dict()
+        if source.action_cond is None and model.action_cond is not None:
+            # warm-starting an action-conditioned model from a video-only one: the action inputs start fresh
+            state.update({f"action_cond.{k}": v for k, v in model.action_cond.state_dict().items()})
+        model.load_checkpoint_state_dict(state, source=f"--warmstart_path {warmstart_path}")
     return model
 
 
@@ -257,6 +291,17 @@ class Trainer:
         self.rank, self.world = accelerator.process_index, accelerator.num_processes
         B, ga = args.per_device_train_batch_size, args.gradient_accumulation_steps
         self.train_ds, self.val_ds = build_datasets(args, config, B * ga * self.world)
+        raw_train_ds, raw_val_ds = (getattr(ds, "dataset", ds) for ds in (self.train_ds, self.val_ds))  # Subset
+        self.config = config = configure_actions(config, args, raw_train_ds)
+        # which columns of a batch's concatenated actions the model takes (each split may have other streams)
+        self.train_columns = action_columns(config, raw_train_ds)
+        self.val_columns = action_columns(config, raw_val_ds)
+        lam_stride = latent_action_sidecar(raw_train_ds).get("latent_action_stride") if config.num_latent_actions \
+            else None
+        if lam_stride not in (None, args.stride):
+            logger.warning("%s: the latent actions connect frames %d apart but windows use --stride %d; each frame "
+                           "is conditioned on a transition of another length", raw_train_ds.data_dir, lam_stride,
+                           args.stride)
         self.sampler = ResumableBatchSampler(len(self.train_ds), B, self.world, self.rank, seed=args.seed,
                                              shuffle=not args.overfit_first_batch)
         self.steps_per_epoch = self.sampler.batches_per_epoch // ga
@@ -347,8 +392,16 @@ class Trainer:
         return 4 if self.device.type == "cuda" else 0
 
     def collate(self, items, seed: int) -> dict:
-        batch = get_maskgit_collator(self.config, seed=seed)(items)
-        return {k: batch[k].to(self.device, non_blocking=True) for k in ("input_ids", "labels")}
+        return self.model_inputs(get_maskgit_collator(self.config, seed=seed)(items), self.train_columns,
+                                 self.args.train_data_dir)
+
+    def model_inputs(self, batch: dict, columns, data_dir) -> dict:
+        """The collated batch's input_ids, labels and (for action-conditioned models) actions, on the device."""
+        inputs = {k: batch[k] for k in ("input_ids", "labels")}
+        if self.config.uses_actions:
+            inputs["actions"], inputs["latent_actions"] = split_actions(
+                batch.get("actions"), columns, self.config.num_latent_actions, f"{data_dir}/actions")
+        return {k: v.to(self.device, non_blocking=True) for k, v in inputs.items() if v is not None}
 
     # ---- one optimizer step
     def forward_backward(self, micro_batches) -> torch.Tensor:
@@ -359,7 +412,7 @@ class Trainer:
         for i, batch in enumerate(micro_batches):
             sync = contextlib.nullcontext() if i == ga - 1 else self.accelerator.no_sync(self.ddp_model)
             with sync:
-                loss = self.ddp_model(input_ids=batch["input_ids"], labels=batch["labels"]).loss / ga
+                loss = self.ddp_model(**batch).loss / ga
                 if inject:
                     loss = loss * float("nan")
                 self.accelerator.backward(loss)
@@ -408,9 +461,9 @@ class Trainer:
         for i, items in enumerate(loader):
             if 0 < self.args.max_eval_steps <= i:
                 break
-            batch = collator(items)
+            batch = self.model_inputs(collator(items), self.val_columns, self.args.val_data_dir)
             with self.accelerator.autocast():
-                out = model(input_ids=batch["input_ids"].to(self.device), labels=batch["labels"].to(self.device))
+                out = model(**batch)
             n = len(items)
             totals += torch.stack([out.loss.double() * n, torch.as_tensor(out.acc).double().to(self.device) * n,
                                    torch.tensor(n, dtype=torch.float64, device=self.device)])
@@ -534,7 +587,7 @@ def run(args) -> None:
     accelerator.wait_for_everyone()
     trainer = Trainer(args, accelerator, config)
     accelerator.init_trackers("genie", config={k: v if isinstance(v, (int, float, str, bool)) else str(v)
-                                               for k, v in {**vars(args), **config.to_dict()}.items()})
+                                               for k, v in {**vars(args), **trainer.config.to_dict()}.items()})
     try:
         trainer.train()
     finally:

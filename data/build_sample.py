@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from data.sample_world import build_sample_world
+from data.sample_world import HELDOUT_MAPS, TRAIN_MAPS, build_sample_world
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_TOKENIZER = "magvit2/pretrained/sample_world_64"
@@ -77,6 +77,9 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=0, help="seed of the episode generator")
     p.add_argument("--train_episodes", type=int, default=2,
                    help="episodes per training map (8 maps); validation gets 1 held-out episode per map + 1 held-out map")
+    p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS), help="freedoom2.wad maps for training")
+    p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
+                   help="maps of the held-out validation episodes (the last one is never trained on)")
     p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
     p.add_argument("--tokenizer", default=SHIPPED_TOKENIZER,
                    help="tokenizer checkpoint directory used to encode the frames (default: the shipped one)")
@@ -93,8 +96,9 @@ def main(argv=None):
     args = parse_args(argv)
     out = Path(args.out_dir)
     raw = out / "raw"
-    build_sample_world(raw, seed=args.seed, train_episodes=args.train_episodes, val_episodes=1,
-                       episode_len=args.episode_len, overwrite=args.overwrite)
+    build_sample_world(raw, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
+                       train_episodes=args.train_episodes, val_episodes=1, episode_len=args.episode_len,
+                       overwrite=args.overwrite)
     if args.train_tokenizer:
         tokenizer_dir = train_tokenizer(raw, out / "tokenizer")
         tokenizer_ref = str(tokenizer_dir)

@@ -5,7 +5,7 @@ import math
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, List, Optional
 
 
 class ConfigError(ValueError):
@@ -100,6 +100,14 @@ class GenieConfig:
     mlp_bias: bool = True
 
     # ---- opt-in extensions (defaults = published behaviour) ----
+    # Action conditioning (genie/actions.py): frame t's tokens get + embed(real action of frame t-1) and
+    # + embed(latent action of the transition t-1 -> t). No parameters are created while these are off.
+    action_names: Optional[List[str]] = None  # real action streams actions/<name>.bin, concatenated in this order
+    action_dim: int = 0  # total width of those streams (set by train.py from the data)
+    action_mean: Optional[List[float]] = None  # per-dimension normalization (train.py: from the training split)
+    action_std: Optional[List[float]] = None
+    num_latent_actions: int = 0  # LAM codebook size; ids come from actions/latent_action.bin (0 = off)
+    action_dropout: float = 0.1  # training: probability that a frame's action inputs are replaced by "no action"
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -121,6 +129,33 @@ class GenieConfig:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         if not 0.0 <= self.max_corrupt_rate <= 1.0 or not 0.0 <= self.non_mlm_ratio <= 1.0:
             raise ConfigError("GenieConfig: max_corrupt_rate and non_mlm_ratio must be in [0, 1]")
+        self._check_actions()
+
+    def _check_actions(self) -> None:
+        names = self.action_names
+        if names is not None:
+            if not names or not all(isinstance(n, str) and n for n in names) or len(set(names)) != len(names):
+                raise ConfigError(f"GenieConfig: action_names must be a non-empty list of distinct names, got {names}")
+            if "latent_action" in names:
+                raise ConfigError("GenieConfig: latent actions are ids, not real actions: use num_latent_actions")
+        if self.action_dim < 0 or (self.action_dim > 0) != (names is not None):
+            raise ConfigError(f"GenieConfig: action_dim {self.action_dim} must be > 0 exactly when action_names is "
+                              f"set (action_names={names})")
+        if names is not None and self.action_dim < len(names):
+            raise ConfigError(f"GenieConfig: action_dim {self.action_dim} < {len(names)} action streams {names}")
+        if (self.action_mean is None) != (self.action_std is None):
+            raise ConfigError("GenieConfig: action_mean and action_std must be given together")
+        if self.action_mean is not None:
+            if len(self.action_mean) != self.action_dim or len(self.action_std) != self.action_dim:
+                raise ConfigError(f"GenieConfig: action_mean / action_std need action_dim = {self.action_dim} "
+                                  f"values, got {len(self.action_mean)} and {len(self.action_std)}")
+            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.action_mean + self.action_std) \
+                    or min(self.action_std) <= 0:
+                raise ConfigError("GenieConfig: action_mean must be finite and action_std finite and positive")
+        if self.num_latent_actions < 0:
+            raise ConfigError(f"GenieConfig: num_latent_actions must be >= 0, got {self.num_latent_actions}")
+        if not 0.0 <= self.action_dropout <= 1.0:
+            raise ConfigError(f"GenieConfig: action_dropout must be in [0, 1], got {self.action_dropout}")
 
     @property
     def H(self) -> int:
@@ -133,6 +168,11 @@ class GenieConfig:
     @property
     def mask_token_id(self) -> int:
         return self.image_vocab_size
+
+    @property
+    def uses_actions(self) -> bool:
+        """Whether the model takes real or latent action inputs."""
+        return self.action_dim > 0 or self.num_latent_actions > 0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -7,6 +7,18 @@ prefixes with MaskGIT; the model's temporal KV cache computes the ground-truth c
 one batched pass per MaskGIT step. The last line printed on stdout is one JSON object with loss, acc, pred_lpips
 (null with --skip_lpips), gen_time, dec_time (s per frame; null when nothing is decoded) and num_examples.
 Evaluation runs in one process on one device: launched with WORLD_SIZE > 1 it exits with an error.
+
+Action-conditioned checkpoints (genie/actions.py) read their action streams from the dataset's actions/ and follow
+the challenge's rule: target frame t sees the actions of frames < t only (so with latent actions, the latent
+action of the transition into t, inferred from frame t itself, is not given). A checkpoint with latent actions
+adds three keys:
+- delta_psnr (Genie's controllability metric): from each window's first num_prompt_frames frames, the remaining
+  frames are generated twice, with the latent actions inferred from the ground truth and with uniformly random
+  ones (same seed, same sampling noise); delta_psnr = mean PSNR(inferred, gt) - mean PSNR(random, gt) over the
+  decoded generated frames (null with --skip_lpips: nothing is decoded);
+- action_probe_acc, action_majority_rate: genie/action_probe.py's probe of the latent action ids against the
+  true button combinations (actions/buttons.bin), fitted on --train_data_dir and scored on --val_data_dir (null
+  when either lacks buttons.bin or latent_action.bin).
 This module is also the top-level `evaluate.py` (a thin wrapper around `main`).
 """
 import argparse
@@ -25,7 +37,10 @@ from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
+from genie.action_probe import action_probe, transition_labels
+from genie.actions import LATENT_ACTION_NAME, action_columns, latent_action_sidecar, split_actions
 from genie.config import ConfigError
+from genie.lam_data import valid_targets
 from genie.evaluation import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
 from genie.st_mask_git import CheckpointError, STMaskGIT
@@ -37,6 +52,8 @@ logger = logging.getLogger("evaluate")
 DEFAULT_VAL_DIR = "data/val_v1.1"
 SAMPLE_VAL_DIR = "data/sample/val"
 DEFAULT_TOKENIZER = "data/magvit2.ckpt"
+DEFAULT_TRAIN_DIR = "data/sample/train"
+BUTTONS_NAME = "buttons"  # the sample world's true actions, labels of the latent action probe
 LPIPS_CHUNK = 32  # frames per LPIPS / decoding call, bounds memory on CPU
 
 
@@ -79,6 +96,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "dec_time are reported as null.")
     parser.add_argument("--device", default=None, help="Device, e.g. cpu or cuda:0 (default: cuda when available).")
     parser.add_argument("--seed", type=int, default=0, help="Seed of the sampler's random numbers.")
+    parser.add_argument("--train_data_dir", default=DEFAULT_TRAIN_DIR,
+                        help="Token dataset whose latent actions and buttons fit the latent action probe (checkpoints "
+                             "with latent actions only).")
     parser.add_argument("--window_size", type=int, default=16, help="Frames per validation window.")
     parser.add_argument("--stride", type=int, default=15, help="Frames between a window's frames (30 Hz / 15 = 2 Hz).")
     args = parser.parse_args(argv)
@@ -130,11 +150,22 @@ def _synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def batch_actions(model: STMaskGIT, batch: dict, columns, device: torch.device, args: argparse.Namespace):
+    """(real actions (B, T, D) or None, latent ids (B, T) or None) of a loader batch, for the model's inputs."""
+    if not model.config.uses_actions:
+        return None, None
+    actions_BTD, latent_BT = split_actions(batch.get("actions"), columns, model.config.num_latent_actions,
+                                           f"{args.val_data_dir}/actions")
+    return (None if actions_BTD is None else actions_BTD.to(device),
+            None if latent_BT is None else latent_BT.to(device))
+
+
 def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
-             scorer: Optional[FrameScorer] = None, outputs: Optional[list] = None) -> dict:
+             scorer: Optional[FrameScorer] = None, outputs: Optional[list] = None, columns=None) -> dict:
     """Run the teacher-forced protocol over `loader`; return the metrics dict (the JSON line's content).
 
     outputs: when a list, per-window frames (prompt | predictions | ground truth) are appended to it as numpy.
+    columns: genie.actions.action_columns of the dataset, for action-conditioned models.
     """
     metrics = {name: RunningMean() for name in ("loss", "acc", "pred_lpips", "gen_time", "dec_time")}
     generator = torch.Generator(device=device).manual_seed(args.seed)
@@ -147,12 +178,14 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
         x_BTHW = batch["input_ids"].view(-1, args.window_size, s, s).to(device)
         B, T = x_BTHW.shape[:2]
         targets_BTHW = x_BTHW[:, 1:]
+        actions_BTD, latent_BT = batch_actions(model, batch, columns, device, args)
 
         _synchronize(device)
         start = time.perf_counter()
         with autocast:
             samples_BTHW, logits_BVFTHW = model.teacher_forced(x_BTHW, args.maskgit_steps, args.temperature,
-                                                               args.unmask_mode, generator=generator)
+                                                               args.unmask_mode, generator=generator,
+                                                               actions=actions_BTD, latent_actions=latent_BT)
         _synchronize(device)
         metrics["gen_time"].update(time.perf_counter() - start, B * (T - 1))
 
@@ -181,6 +214,88 @@ def score_frames(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tens
         metrics["dec_time"].update(time.perf_counter() - start, len(pred_images))
         gt_images = scorer.decode(gt_NHW[a:a + LPIPS_CHUNK])
         metrics["pred_lpips"].update(scorer.lpips_distances(pred_images, gt_images).sum().item(), len(pred_images))
+
+
+def psnr(images_a: torch.Tensor, images_b: torch.Tensor) -> torch.Tensor:
+    """uint8 (N, H, W, 3) pairs -> (N,) PSNR in dB (pixels in [0, 1]; identical images give 100 dB)."""
+    mse_N = (((images_a.float() - images_b.float()) / 255.0) ** 2).flatten(1).mean(dim=1)
+    return -10.0 * torch.log10(mse_N.clamp_min(1e-10))
+
+
+def decoded_psnr(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tensor) -> torch.Tensor:
+    """(N,) PSNR between decoded predicted and ground-truth token frames."""
+    return torch.cat([psnr(scorer.decode(pred_NHW[a:a + LPIPS_CHUNK]), scorer.decode(gt_NHW[a:a + LPIPS_CHUNK]))
+                      for a in range(0, len(pred_NHW), LPIPS_CHUNK)])
+
+
+@torch.no_grad()
+def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device, scorer: FrameScorer,
+               columns) -> float:
+    """Genie's delta-PSNR: mean PSNR of frames generated with the ground truth's latent actions minus that with
+    uniformly random latent actions, over the frames after the config's num_prompt_frames (see the module doc).
+    Real action inputs, if the model also has them, stay prompt-only in both runs."""
+    P, K, s = model.config.num_prompt_frames, model.config.num_latent_actions, model.config.H
+    if P >= args.window_size:
+        raise EvaluationError(f"delta_psnr: the checkpoint's num_prompt_frames {P} leaves no frame to generate in "
+                              f"windows of {args.window_size} frames")
+    kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
+                  control=True)
+    # same sampling noise in both runs: only the latent actions differ
+    generators = [torch.Generator(device=device).manual_seed(args.seed) for _ in range(2)]
+    random_actions = torch.Generator().manual_seed(args.seed + 1)
+    psnrs = [RunningMean(), RunningMean()]
+    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
+                else contextlib.nullcontext())
+    for batch in tqdm(loader, desc="delta_psnr", unit="batch", file=sys.stderr):
+        x_BTHW = batch["input_ids"].view(-1, args.window_size, s, s).to(device)
+        B, T = x_BTHW.shape[:2]
+        actions_BTD, latent_BT = batch_actions(model, batch, columns, device, args)
+        if actions_BTD is not None:
+            actions_BTD = actions_BTD.clone()
+            actions_BTD[:, P:] = float("nan")  # unknown after the prompt
+        random_BT = latent_BT.clone()
+        random_BT[:, P:] = torch.randint(0, K, (B, T - P), generator=random_actions).to(device)
+        gt_NHW = x_BTHW[:, P:].flatten(0, 1)
+        for played_BT, generator, mean in zip((latent_BT, random_BT), generators, psnrs):
+            with autocast:
+                tokens_BTHW, _ = model.generate(x_BTHW[:, :P], T - P, generator=generator, actions=actions_BTD,
+                                                latent_actions=played_BT, **kwargs)
+            frame_psnr = decoded_psnr(scorer, tokens_BTHW[:, P:].flatten(0, 1), gt_NHW)
+            mean.update(frame_psnr.sum().item(), len(frame_psnr))
+    return psnrs[0].mean - psnrs[1].mean
+
+
+def probe_examples(dataset: RawTokenDataset, default_stride: int):
+    """(latent action ids, true button-combination labels) of the transitions with a LAM-inferred id, or None when
+    the dataset lacks buttons.bin or latent_action.bin. The transition stride and LAM context come from
+    actions/latent_action.json (genie/label_latent_actions.py), else --stride and one past frame."""
+    if BUTTONS_NAME not in dataset.actions or LATENT_ACTION_NAME not in dataset.actions:
+        logger.warning("%s: no actions/%s.bin or actions/%s.bin: the latent action probe is skipped",
+                       dataset.data_dir, BUTTONS_NAME, LATENT_ACTION_NAME)
+        return None
+    sidecar = latent_action_sidecar(dataset)
+    stride = int(sidecar.get("latent_action_stride", default_stride))
+    num_past = int(sidecar.get("latent_action_num_past_frames", 1))
+    segment_ids = (np.asarray(dataset.segment_ids) if dataset.segment_ids is not None
+                   else np.zeros(dataset.metadata["num_images"], dtype=np.int64))
+    targets = valid_targets(segment_ids, stride * num_past)
+    codes = np.asarray(dataset.actions[LATENT_ACTION_NAME][:, 0])[targets].round().astype(np.int64)
+    labels = transition_labels(np.asarray(dataset.actions[BUTTONS_NAME]), targets, stride)
+    return codes, labels
+
+
+def latent_action_probe(val_ds: RawTokenDataset, train_data_dir, stride: int) -> dict:
+    """action_probe_acc and action_majority_rate (None when a split lacks the files)."""
+    none = {"action_probe_acc": None, "action_majority_rate": None}
+    if not Path(train_data_dir).is_dir():
+        logger.warning("--train_data_dir %s not found: the latent action probe is skipped", train_data_dir)
+        return none
+    train_ds = RawTokenDataset(train_data_dir, window_size=1, filter_interrupts=False, check_tokens=False)
+    train, val = probe_examples(train_ds, stride), probe_examples(val_ds, stride)
+    if train is None or val is None or not len(train[0]) or not len(val[0]):
+        return none
+    result = action_probe(train[0], train[1], val[0], val[1])
+    return {"action_probe_acc": result["probe_acc"], "action_majority_rate": result["majority_rate"]}
 
 
 def save_outputs(out_dir: str, windows: list, dataset, window_size: int) -> None:
@@ -213,6 +328,7 @@ def run(args: argparse.Namespace) -> dict:
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
                               filter_overlaps=True)
     check_compatible(model, dataset, args.window_size)
+    columns = action_columns(model.config, dataset) if model.config.uses_actions else None
     num_windows = len(dataset) if args.max_examples is None else min(args.max_examples, len(dataset))
     loader = DataLoader(Subset(dataset, range(num_windows)), batch_size=args.batch_size, shuffle=False)
     logger.info("evaluating %d windows of %s with %s on %s", num_windows, args.val_data_dir, args.checkpoint_dir,
@@ -228,7 +344,12 @@ def run(args: argparse.Namespace) -> dict:
                                   f"decoding frames.") from None
     outputs = [] if args.save_outputs_dir else None
     with torch.no_grad():
-        result = evaluate(model, loader, args, device, scorer, outputs)
+        result = evaluate(model, loader, args, device, scorer, outputs, columns)
+        if model.config.num_latent_actions:
+            if scorer is None:
+                logger.warning("--skip_lpips: nothing is decoded, so delta_psnr is null")
+            result["delta_psnr"] = None if scorer is None else delta_psnr(model, loader, args, device, scorer, columns)
+            result.update(latent_action_probe(dataset, args.train_data_dir, args.stride))
     if outputs is not None:
         save_outputs(args.save_outputs_dir, outputs, dataset, args.window_size)
     return result

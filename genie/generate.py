@@ -8,6 +8,14 @@ frames are the prompt and the remaining `window_size - num_prompt_frames` frames
 (autoregressively in time, or with `--teacher_force_time` from the ground truth of all earlier frames).
 The output directory uses the token dataset layout (video.bin + metadata.json, written atomically); each example
 contributes `2 * window_size - num_prompt_frames` frames, ordered prompt | predictions | ground truth.
+
+Action-conditioned checkpoints (genie/actions.py) get the window's actions from the dataset under the challenge's
+rule (only the prompt's rows are known; later frames get "no action"), or are played:
+    python genie/generate.py ... --latent_actions 3,3,1,0,2,2,5,7   # one LAM latent action per generated frame
+    python genie/generate.py ... --actions_from_data                 # the data's own actions for generated frames
+    python visualize.py --token_dir data/genie_generated --label_action latent_action
+With latent actions, actions/latent_action.bin in the output holds each output frame's latent action (-1: none;
+prompt and ground-truth frames: the dataset's ids when it has them).
 """
 import argparse
 import logging
@@ -21,6 +29,7 @@ from einops import rearrange
 from tqdm.auto import tqdm
 
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
+from genie.actions import LATENT_ACTION_NAME, action_columns, split_actions
 from genie.config import ConfigError
 from genie.st_mask_git import CheckpointError, STMaskGIT
 
@@ -51,6 +60,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--teacher_force_time", action="store_true",
                    help="Predict frame t from the ground truth of frames < t (as the challenge metrics do) instead "
                         "of from the model's own earlier predictions.")
+    p.add_argument("--latent_actions", default=None,
+                   help="Comma-separated latent action ids (0 .. K-1 of a LAM-conditioned checkpoint) played for the "
+                        "generated frames: window_size - num_prompt_frames ids, or one id for all of them.")
+    p.add_argument("--actions_from_data", action="store_true",
+                   help="Control mode: condition the generated frames on the dataset's own actions (real and, "
+                        "unless --latent_actions is given, latent) instead of only the prompt's.")
     p.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT decoding steps per frame.")
     p.add_argument("--temperature", type=float, default=0.0, help="Sampling temperature; 0 samples greedily.")
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
@@ -65,6 +80,20 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error(f"--num_prompt_frames must be in [1, window_size={args.window_size}), got {args.num_prompt_frames}")
     if args.example_ind < 0 or args.temperature < 0:
         p.error("--example_ind and --temperature must be >= 0")
+    if args.latent_actions is not None:
+        try:
+            args.latent_actions = [int(v) for v in args.latent_actions.split(",")]
+        except ValueError:
+            p.error(f"--latent_actions must be comma-separated integers, got {args.latent_actions!r}")
+        num_new = args.window_size - args.num_prompt_frames
+        if len(args.latent_actions) == 1:
+            args.latent_actions = args.latent_actions * num_new
+        if len(args.latent_actions) != num_new:
+            p.error(f"--latent_actions: {len(args.latent_actions)} ids for {num_new} generated frames "
+                    f"(window_size {args.window_size} - num_prompt_frames {args.num_prompt_frames})")
+    if args.teacher_force_time and (args.latent_actions is not None or args.actions_from_data):
+        p.error("--latent_actions and --actions_from_data play generated frames; --teacher_force_time predicts each "
+                "frame from the ground truth with the prompt-only action rule")
     return args
 
 
@@ -81,6 +110,16 @@ def check_compatible(model: STMaskGIT, dataset: RawTokenDataset, args) -> None:
     if meta["vocab_size"] != config.image_vocab_size:
         raise GenerationError(f"{where}: vocab_size {meta['vocab_size']} differs from the checkpoint's "
                               f"image_vocab_size {config.image_vocab_size} ({args.checkpoint_dir})")
+    K = config.num_latent_actions
+    if args.latent_actions is not None:
+        if not K:
+            raise GenerationError(f"--latent_actions: the checkpoint {args.checkpoint_dir} takes no latent actions "
+                                  f"(num_latent_actions is 0 in its config.json)")
+        bad = [a for a in args.latent_actions if not 0 <= a < K]
+        if bad:
+            raise GenerationError(f"--latent_actions: ids {bad} are outside [0, {K}) (the checkpoint's LAM codebook)")
+    if args.actions_from_data and not config.uses_actions:
+        raise GenerationError(f"--actions_from_data: the checkpoint {args.checkpoint_dir} takes no actions")
     last = args.example_ind + args.num_examples - 1
     if last >= len(dataset):
         raise GenerationError(f"{dataset.data_dir}: examples {args.example_ind}..{last} requested but the dataset has "
@@ -93,18 +132,65 @@ def load_windows(dataset: RawTokenDataset, indices, s: int) -> torch.Tensor:
     return rearrange(torch.stack(windows), "b (t h w) -> b t h w", t=dataset.window_size, h=s, w=s)
 
 
+def load_actions(dataset: RawTokenDataset, indices, model: STMaskGIT, columns):
+    """The windows' action rows for the model: (real actions (B, T, D) or None, latent ids (B, T) or None).
+
+    Latent ids are only required when the model needs them from the data (no --latent_actions): a dataset without
+    actions/latent_action.bin gives "no action" (id K) for the prompt otherwise.
+    """
+    if columns is None:
+        return None, None
+    real, latent = columns
+    all_BTA = torch.stack([dataset[i]["actions"] for i in indices]) if dataset.action_names else None
+    actions_BTD, latent_BT = split_actions(all_BTA, (real, latent), model.config.num_latent_actions,
+                                           str(dataset.data_dir / "actions"))
+    if model.config.num_latent_actions and latent_BT is None:
+        latent_BT = torch.full((len(indices), dataset.window_size), model.config.num_latent_actions)
+    return actions_BTD, latent_BT
+
+
 @torch.no_grad()
-def predict(model: STMaskGIT, gt_BTHW: torch.Tensor, args, generator: torch.Generator) -> torch.Tensor:
-    """Predicted frames (B, T - P, H, W) for ground-truth windows gt_BTHW, prompt P = args.num_prompt_frames."""
+def predict(model: STMaskGIT, gt_BTHW: torch.Tensor, args, generator: torch.Generator, actions_BTD=None,
+            latent_BT=None) -> torch.Tensor:
+    """Predicted frames (B, T - P, H, W) for ground-truth windows gt_BTHW, prompt P = args.num_prompt_frames.
+
+    actions_BTD / latent_BT: the windows' action rows (action-conditioned models); with --latent_actions the
+    generated frames' latent rows are the played ids.
+    """
     kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
-                  use_cache=True, generator=generator)
+                  use_cache=True, generator=generator, actions=actions_BTD, latent_actions=latent_BT)
     P, T = args.num_prompt_frames, gt_BTHW.shape[1]
     if args.teacher_force_time:
         # All frames 1..T-1 from their ground-truth past in one cached pass per MaskGIT step; keep P..T-1.
         samples_BTHW, _ = model.teacher_forced(gt_BTHW, **kwargs)
         return samples_BTHW[:, P - 1:]
-    tokens_BTHW, _ = model.generate(gt_BTHW[:, :P], T - P, **kwargs)
+    control = args.actions_from_data or args.latent_actions is not None
+    if args.latent_actions is not None:
+        latent_BT = latent_BT.clone()
+        latent_BT[:, P:] = torch.tensor(args.latent_actions, device=latent_BT.device)
+        if not args.actions_from_data and actions_BTD is not None:
+            # only the latent actions are played: real rows after the prompt stay unknown (NaN), so frame P still
+            # sees the prompt's last real row P-1 and later frames none, as in the prompt-only rule
+            actions_BTD = actions_BTD.clone()
+            actions_BTD[:, P:] = float("nan")
+        kwargs.update(actions=actions_BTD, latent_actions=latent_BT)
+    tokens_BTHW, _ = model.generate(gt_BTHW[:, :P], T - P, control=control, **kwargs)
     return tokens_BTHW[:, P:]
+
+
+def played_latent_actions(latent_BT: torch.Tensor, args, K: int) -> torch.Tensor:
+    """Each output frame's latent action (B, 2T - P) in the output order prompt | predictions | ground truth;
+    -1 where there is none (frame 0, a frame without a known id, predictions generated without one)."""
+    P = args.num_prompt_frames
+    ids_BT = latent_BT.clone()
+    ids_BT[:, 0] = -1  # the model never conditions frame 0 on an action
+    predicted_BT = ids_BT[:, P:].clone()
+    if args.latent_actions is not None:
+        predicted_BT[:] = torch.tensor(args.latent_actions)
+    elif not args.actions_from_data:
+        predicted_BT[:] = -1
+    out_BT = torch.cat([ids_BT[:, :P], predicted_BT, ids_BT[:, P:]], dim=1)
+    return out_BT.masked_fill(out_BT >= K, -1)
 
 
 def generate(args) -> dict:
@@ -115,17 +201,26 @@ def generate(args) -> dict:
     check_compatible(model, dataset, args)
     s, P, T = dataset.metadata["s"], args.num_prompt_frames, args.window_size
     generator = torch.Generator(device).manual_seed(args.seed)
+    K = model.config.num_latent_actions
+    # the latent ids come from the data unless they are played
+    columns = (action_columns(model.config, dataset, require_latent=args.latent_actions is None)
+               if model.config.uses_actions else None)
 
-    outputs, seconds = [], 0.0
+    outputs, latent_outputs, seconds = [], [], 0.0
     indices = list(range(args.example_ind, args.example_ind + args.num_examples))
     for a in tqdm(range(0, len(indices), args.batch_size), desc="generate", unit="batch"):
-        gt_BTHW = load_windows(dataset, indices[a:a + args.batch_size], s).to(device)
+        batch_indices = indices[a:a + args.batch_size]
+        gt_BTHW = load_windows(dataset, batch_indices, s).to(device)
+        actions_BTD, latent_BT = (x if x is None else x.to(device)
+                                  for x in load_actions(dataset, batch_indices, model, columns))
         t0 = time.perf_counter()
-        pred_BTHW = predict(model, gt_BTHW, args, generator)
+        pred_BTHW = predict(model, gt_BTHW, args, generator, actions_BTD, latent_BT)
         if device.type == "cuda":
             torch.cuda.synchronize()
         seconds += time.perf_counter() - t0
         outputs.append(torch.cat([gt_BTHW[:, :P], pred_BTHW, gt_BTHW[:, P:]], dim=1).cpu())
+        if K:
+            latent_outputs.append(played_latent_actions(latent_BT.cpu(), args, K))
     video_NHW = rearrange(torch.cat(outputs), "b t h w -> (b t) h w").numpy()
     frames_per_example = 2 * T - P
     logger.info("%.4f s per generated frame (%d windows, %d frames each)", seconds / (len(indices) * (T - P)),
@@ -136,9 +231,16 @@ def generate(args) -> dict:
                     frames_per_example=frames_per_example, teacher_force_time=args.teacher_force_time,
                     maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
                     stride=args.stride, checkpoint_dir=str(args.checkpoint_dir), val_data_dir=str(args.val_data_dir))
+    actions = None
+    if model.config.uses_actions:
+        metadata.update(actions_from_data=args.actions_from_data, latent_actions=args.latent_actions)
+    if K:
+        ids_N1 = rearrange(torch.cat(latent_outputs), "b t -> (b t) 1").numpy().astype(np.float32)
+        actions = {LATENT_ACTION_NAME: ids_N1}
     # One segment per example, so that windows read back from the output never mix two examples.
     segment_ids = np.repeat(np.arange(len(indices), dtype=np.int32), frames_per_example)
-    write_token_dataset(args.output_dir, video_NHW, segment_ids=segment_ids, metadata=metadata, overwrite=True)
+    write_token_dataset(args.output_dir, video_NHW, segment_ids=segment_ids, actions=actions, metadata=metadata,
+                        overwrite=True)
     logger.info("wrote %d frames to %s", len(video_NHW), args.output_dir)
     return {**metadata, "num_images": len(video_NHW)}
 

@@ -40,6 +40,7 @@ class LAMConfig:
     channels: list[int] = field(default_factory=lambda: [16, 32, 64])  # conv widths; each level halves the size
     num_attention_blocks: int = 1  # self-attention blocks at the bottleneck of encoder and decoder (global motion)
     num_heads: int = 4
+    corr_radius: int = 3  # encoder cost volume reach, in bottleneck cells (8 px each at 64 px, 3 levels); 0: off
     predict_flow: bool = True  # the decoder warps the last past frame by a predicted flow before adding a residual
     latent_dim: int = 32  # width of the continuous action vector and of the codes
     codebook_size: int = 8
@@ -47,6 +48,11 @@ class LAMConfig:
     codebook_weight: float = 1.0  # pulls codes towards the encoder outputs assigned to them
     commitment_weight: float = 0.25  # pulls encoder outputs towards their codes
     recon_weight: float = 1.0  # pixel MSE of the predicted next frame
+    # Extra MSE between the predicted and true next frame average-pooled by lowres_pool (0: off). At full
+    # resolution, texture detail nobody can predict drowns where the view moved; at low resolution, camera motion
+    # is most of the change, so this weight steers the codes towards motion, i.e. towards actions.
+    lowres_pool: int = 8
+    lowres_weight: float = 4.0
     dead_code_steps: int = 50  # a code no training batch used for this many steps is restarted; 0 disables
 
     def __post_init__(self):
@@ -64,8 +70,13 @@ class LAMConfig:
         if self.channels[-1] % self.num_heads:
             raise ConfigError(f"LAMConfig: channels[-1] = {self.channels[-1]} is not divisible by num_heads "
                               f"{self.num_heads}")
+        if self.corr_radius < 0:
+            raise ConfigError(f"LAMConfig.corr_radius must be >= 0, got {self.corr_radius}")
         if self.num_attention_blocks < 0:
             raise ConfigError(f"LAMConfig.num_attention_blocks must be >= 0, got {self.num_attention_blocks}")
+        if self.lowres_pool < 0 or (self.lowres_pool and self.image_size % self.lowres_pool):
+            raise ConfigError(f"LAMConfig.lowres_pool must be 0 or divide image_size {self.image_size}, "
+                              f"got {self.lowres_pool}")
         if self.dead_code_steps < 0:
             raise ConfigError(f"LAMConfig.dead_code_steps must be >= 0, got {self.dead_code_steps}")
 
@@ -176,15 +187,32 @@ class AttentionBlock(nn.Module):
         return x_BCHW + rearrange(mlp_BSC, "b (h w) c -> b c h w", h=height)
 
 
+def local_correlation(a_BCHW: torch.Tensor, b_BCHW: torch.Tensor, radius: int) -> torch.Tensor:
+    """Cosine similarity of each position of a with the positions of b within +-radius cells (a cost volume, as in
+    optical flow networks): (B, (2 radius + 1)^2, H, W), displacement (dy, dx) in row-major order."""
+    a_BCHW, b_BCHW = F.normalize(a_BCHW, dim=1), F.normalize(b_BCHW, dim=1)
+    height, width = a_BCHW.shape[2:]
+    b_padded = F.pad(b_BCHW, (radius, radius, radius, radius))
+    return torch.stack([(a_BCHW * b_padded[:, :, dy: dy + height, dx: dx + width]).sum(dim=1)
+                        for dy in range(2 * radius + 1) for dx in range(2 * radius + 1)], dim=1)
+
+
 class ActionEncoder(nn.Module):
-    """Past frames and next frame -> continuous action vector (B, latent_dim)."""
+    """Past frames and next frame -> continuous action vector (B, latent_dim).
+
+    Two views of the transition meet at the bottleneck: convs over the frames stacked on channels (with the change
+    from the last past frame), and a cost volume between per-frame features of the last past frame and the next
+    frame, which shows how far the content moved even when that is many pixels.
+    """
 
     def __init__(self, cfg: LAMConfig):
         super().__init__()
-        # The past frames, the next frame and their difference with the last past frame, stacked on channels:
-        # the difference makes motion directly visible to the first conv.
+        self.corr_radius = cfg.corr_radius
         in_channels = (cfg.num_past_frames + 2) * cfg.image_channels
         self.convs = ConvEncoder(in_channels, cfg.channels)
+        if cfg.corr_radius:
+            self.frame_convs = ConvEncoder(cfg.image_channels, cfg.channels)
+            self.corr_proj = nn.Conv2d((2 * cfg.corr_radius + 1) ** 2, cfg.channels[-1], 1)
         side = cfg.image_size // cfg.downsample_factor
         self.attention = nn.ModuleList(AttentionBlock(cfg.channels[-1], side, cfg.num_heads)
                                        for _ in range(cfg.num_attention_blocks))
@@ -194,6 +222,10 @@ class ActionEncoder(nn.Module):
         x_BCHW = torch.cat([rearrange(past_BPCHW, "b p c h w -> b (p c) h w"), next_BCHW,
                             next_BCHW - past_BPCHW[:, -1]], dim=1)
         h_BCHW = self.convs(x_BCHW)[-1]
+        if self.corr_radius:
+            pair_BCHW = torch.cat([past_BPCHW[:, -1], next_BCHW])
+            last_BCHW, next_features_BCHW = self.frame_convs(pair_BCHW)[-1].chunk(2)
+            h_BCHW = h_BCHW + self.corr_proj(local_correlation(last_BCHW, next_features_BCHW, self.corr_radius))
         for block in self.attention:
             h_BCHW = block(h_BCHW)
         return self.head(F.silu(h_BCHW).flatten(1))
@@ -351,8 +383,9 @@ class VectorQuantizer(nn.Module):
 
 @dataclass
 class LAMOutput:
-    loss: torch.Tensor  # scalar: recon_weight * recon_loss + vq_loss
+    loss: torch.Tensor  # scalar: recon_weight * recon_loss + lowres_weight * lowres_loss + vq_loss
     recon_loss: torch.Tensor  # scalar: pixel MSE of the predicted next frame ([-1, 1] scale)
+    lowres_loss: torch.Tensor  # scalar: the same MSE after average pooling by lowres_pool (0 when off)
     vq_loss: torch.Tensor  # scalar
     recon: torch.Tensor  # (B, C, H, W) predicted next frame
     action_ids: torch.Tensor  # (B,) int64 latent action per transition
@@ -387,10 +420,15 @@ class LAM(nn.Module):
         z_BD = self.encoder(past_BPCHW, next_BCHW)
         vq = self.quantizer(z_BD)
         recon_BCHW = self.decoder(past_BPCHW, vq.z_q.to(z_BD.dtype))
+        cfg = self.config
         recon_loss = F.mse_loss(recon_BCHW.float(), next_BCHW.float())
-        loss = self.config.recon_weight * recon_loss + vq.loss
-        return LAMOutput(loss, recon_loss, vq.loss, recon_BCHW, vq.ids, z_BD, vq.perplexity, vq.used_fraction,
-                         vq.num_restarted)
+        lowres_loss = recon_loss.new_zeros(())
+        if cfg.lowres_pool:
+            lowres_loss = F.mse_loss(F.avg_pool2d(recon_BCHW.float(), cfg.lowres_pool),
+                                     F.avg_pool2d(next_BCHW.float(), cfg.lowres_pool))
+        loss = cfg.recon_weight * recon_loss + cfg.lowres_weight * lowres_loss + vq.loss
+        return LAMOutput(loss, recon_loss, lowres_loss, vq.loss, recon_BCHW, vq.ids, z_BD, vq.perplexity,
+                         vq.used_fraction, vq.num_restarted)
 
     @torch.no_grad()
     def encode(self, past_BPCHW: torch.Tensor, next_BCHW: torch.Tensor) -> torch.Tensor:

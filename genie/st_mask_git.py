@@ -6,6 +6,8 @@ Inference entry points:
 - `teacher_forced`: the challenge protocol (FORMATS.md 5): every frame t = 1..T-1 predicted from ground truth
   frames < t; the ground-truth context is computed once, all targets together in one pass per MaskGIT step.
 Both take `use_cache=False` for the straightforward full recomputation (the reference they are tested against).
+With opt-in action inputs (config.action_names / num_latent_actions, genie/actions.py) every entry point takes
+per-frame `actions` (B, T, D) and `latent_actions` (B, T) and applies the same known-rows rule in both paths.
 """
 import os
 import shutil
@@ -20,6 +22,7 @@ from einops import rearrange
 from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
 from torch import nn
 
+from genie.actions import ActionConditioning
 from genie.config import GenieConfig, load_json
 from genie.evaluation import factored_argmax_correct, factored_cross_entropy
 from genie.factorization import factorize_token_ids
@@ -78,6 +81,8 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.out_x_proj = nn.Linear(config.d_model, config.factored_vocab_size * config.num_factored_vocabs)
         # muP readout (mup.MuReadout with output_mult 1): the input is divided by d_model / base d_model
         self.readout_width_mult = config.d_model / MUP_BASE_D_MODEL if config.use_mup else None
+        # only when enabled, so the published parameter layout is unchanged
+        self.action_cond = ActionConditioning(config) if config.uses_actions else None
 
     def init_weights(self) -> None:
         """Normal(0, 0.02) for Linear and Embedding weights, zero biases (as published)."""
@@ -101,10 +106,32 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             raise ValueError(f"token ids must be in [0, {self.config.image_vocab_size}) or the mask token "
                              f"{self.mask_token_id}; got values in [{x_BTHW.min().item()}, {x_BTHW.max().item()}]")
 
-    def _embed(self, x_BTS: torch.Tensor, first_frame: int) -> torch.Tensor:
-        """Token ids of frames first_frame.. (B, T, S) -> input embeddings (B, T, S, C)."""
+    def _embed(self, x_BTS: torch.Tensor, first_frame: int, cond_BTC: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Token ids of frames first_frame.. (B, T, S) -> input embeddings (B, T, S, C).
+
+        cond_BTC: action embeddings of these frames (B, T, C), added to every token of a frame.
+        """
         T = x_BTS.shape[1]
-        return self.token_embed(x_BTS) + self.pos_embed_TSC[:, first_frame:first_frame + T]
+        x_BTSC = self.token_embed(x_BTS) + self.pos_embed_TSC[:, first_frame:first_frame + T]
+        return x_BTSC if cond_BTC is None else x_BTSC + cond_BTC.unsqueeze(2).to(x_BTSC.dtype)
+
+    def action_embeds(self, B: int, T: int, actions: Optional[torch.Tensor] = None,
+                      latent_actions: Optional[torch.Tensor] = None,
+                      known_T: Union[int, torch.Tensor, None] = None) -> Optional[torch.Tensor]:
+        """Action embeddings (B, T, C) of window frames 0..T-1, or None for a model without action inputs.
+
+        actions (B, T, D) float, latent_actions (B, T) ids: per-frame rows as in the dataset (genie/actions.py).
+        known_T: how many leading rows each frame may use (int or (T,)); None: all of them.
+        A model without action inputs raises when given actions.
+        """
+        if self.action_cond is None:
+            if actions is not None or latent_actions is not None:
+                raise ValueError("this model has no action inputs (its config sets neither action_names nor "
+                                 "num_latent_actions); do not pass actions or latent_actions")
+            return None
+        self.action_cond.check_inputs(actions, latent_actions, B, T)
+        device = self.pos_embed_TSC.device
+        return self.action_cond(B, T, actions, latent_actions, T if known_T is None else known_T, device)
 
     def _readout(self, x_BTSC: torch.Tensor) -> torch.Tensor:
         if self.readout_width_mult is not None:
@@ -115,16 +142,29 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         """(B, T, S, F*V) -> factored (B, V, F, T, H, W)."""
         return rearrange(logits_BTSC, "B T (H W) (F V) -> B V F T H W", H=self.h, F=self.config.num_factored_vocabs)
 
-    def compute_logits(self, x_BTHW: torch.Tensor) -> torch.Tensor:
-        """Token ids of frames 0..T-1 (B, T, H, W), T <= config.T -> logits (B, F*V, T, H, W)."""
+    def compute_logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
+                       latent_actions: Optional[torch.Tensor] = None,
+                       known_T: Union[int, torch.Tensor, None] = None) -> torch.Tensor:
+        """Token ids of frames 0..T-1 (B, T, H, W), T <= config.T -> logits (B, F*V, T, H, W).
+
+        actions / latent_actions / known_T: per-frame action inputs, see `action_embeds`.
+        """
         self._check_tokens(x_BTHW)
-        x_BTSC = self.decoder(self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), 0))
+        B, T = x_BTHW.shape[:2]
+        return self._full_logits(x_BTHW, self.action_embeds(B, T, actions, latent_actions, known_T))
+
+    def _full_logits(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """compute_logits without input checks, with precomputed action embeddings (B, T, C) or None."""
+        x_BTSC = self.decoder(self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), 0, cond_BTC))
         return rearrange(self._readout(x_BTSC), "B T (H W) C -> B C T H W", H=self.h)
 
-    def forward(self, input_ids: torch.Tensor, labels: torch.Tensor, **kwargs) -> STMaskGITOutput:
+    def forward(self, input_ids: torch.Tensor, labels: torch.Tensor, actions: Optional[torch.Tensor] = None,
+                latent_actions: Optional[torch.Tensor] = None, **kwargs) -> STMaskGITOutput:
         """input_ids, labels: (B, T*H*W) flattened token ids; input_ids hold the mask token where corrupted.
 
-        Other batch entries (attention_mask, actions, ...) are accepted and not used by this video-only model.
+        actions (B, T, D), latent_actions (B, T): the model's action inputs (all rows known, as in training), used
+        when the config enables them; a video-only model ignores them, like the other batch entries
+        (attention_mask, ...).
         """
         S = self.config.S
         if input_ids.dim() != 2 or input_ids.shape[1] % S or input_ids.shape != labels.shape:
@@ -132,7 +172,9 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
                              f"{tuple(labels.shape)}")
         x_BTHW = rearrange(input_ids, "B (T H W) -> B T H W", H=self.h, W=self.w)
         labels_BTHW = rearrange(labels, "B (T H W) -> B T H W", H=self.h, W=self.w)
-        logits_BCTHW = self.compute_logits(x_BTHW)
+        if self.action_cond is None:
+            actions = latent_actions = None
+        logits_BCTHW = self.compute_logits(x_BTHW, actions, latent_actions)
 
         # frame 0 is always given; only the masked tokens of frames 1.. count
         factored_BVFTHW = rearrange(logits_BCTHW[:, :, 1:], "B (F V) T H W -> B V F T H W",
@@ -151,27 +193,32 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         return TemporalKVCache(self.config.num_layers, capacity)
 
     def forward_frames(self, x_BTHW: torch.Tensor, first_frame: int, kv_cache: TemporalKVCache,
-                       targets: bool = False, commit: int = 0, readout: bool = True) -> Optional[torch.Tensor]:
+                       targets: bool = False, commit: int = 0, readout: bool = True,
+                       cond_BTC: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
         """Run T frames at absolute positions first_frame.. against the frames in kv_cache.
 
         targets=False: the frames follow the cached ones (first_frame == kv_cache.length) and attend to them and
             causally to each other; `commit` of them (from the first) are then kept in the cache.
         targets=True: teacher-forced targets: frame first_frame + i attends to cached frames < first_frame + i and
             to itself (the cache holds frames 0..T-1 and first_frame is 1).
+        cond_BTC: action embeddings of these T frames (B, T, C), from `action_embeds` of the whole window sliced
+            to these frames (None: no action input).
         Returns factored logits (B, V, F, T, H, W), or None when readout is False.
         """
         self._check_tokens(x_BTHW, first_frame)
+        if cond_BTC is not None and cond_BTC.shape[:2] != x_BTHW.shape[:2]:
+            raise ValueError(f"cond_BTC {tuple(cond_BTC.shape)} does not match the frames {tuple(x_BTHW.shape)}")
         T = x_BTHW.shape[1]
         if targets and (first_frame != 1 or kv_cache.length != T):
             raise ValueError(f"teacher-forced targets 1..{T} need a cache of frames 0..{T - 1} and first_frame 1; "
                              f"got {kv_cache.length} cached frames and first_frame {first_frame}")
         if not targets and first_frame != kv_cache.length:
             raise ValueError(f"frames starting at {first_frame} must follow the {kv_cache.length} cached frames")
-        return self._run_frames(x_BTHW, first_frame, kv_cache, targets, commit, readout)
+        return self._run_frames(x_BTHW, first_frame, kv_cache, targets, commit, readout, cond_BTC)
 
-    def _run_frames(self, x_BTHW, first_frame, kv_cache, targets=False, commit=0, readout=True):
+    def _run_frames(self, x_BTHW, first_frame, kv_cache, targets=False, commit=0, readout=True, cond_BTC=None):
         """forward_frames without the input checks (for ids the sampler produced: no device sync per step)."""
-        x_BTSC = self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), first_frame)
+        x_BTSC = self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), first_frame, cond_BTC)
         x_BTSC = self.decoder(x_BTSC, kv_cache, targets, kv_only=not readout and not targets)
         kv_cache.commit(commit)
         return self._factored(self._readout(x_BTSC)) if readout else None
@@ -179,10 +226,15 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
     @torch.no_grad()
     def generate(self, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_steps: int = 2,
                  temperature: float = 0.0, unmask_mode: str = "random", use_cache: bool = True,
-                 generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+                 generator: Optional[torch.Generator] = None, actions: Optional[torch.Tensor] = None,
+                 latent_actions: Optional[torch.Tensor] = None,
+                 control: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
         """Autoregressively generate frames after a prompt.
 
         prompt_BTHW: (B, T0, H, W) token ids; T0 + num_new_frames must be <= config.T.
+        actions (B, T0 + n, D), latent_actions (B, T0 + n): per-frame action rows of the whole window (models with
+        action inputs). control=False: only the prompt's rows are used (the challenge's rule; later frames get "no
+        action" whatever the rows hold); control=True: all rows are played (driving the world).
         With the cache each MaskGIT step costs one frame's compute (plus one pass per finished frame to append it);
         without it every step recomputes the window, future frames masked (the published procedure).
         Returns (tokens (B, T0 + n, H, W): prompt then generated frames,
@@ -196,37 +248,45 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             raise ValueError(f"cannot generate up to frame {total - 1}: the model has position embeddings for "
                              f"T = {self.config.T} frames (prompt {T0} + {num_new_frames} new > {self.config.T})")
         self._check_tokens(prompt_BTHW)
+        cond_BTC = self.action_embeds(B, total, actions, latent_actions, total if control else T0)
         tokens_BTHW = torch.cat([prompt_BTHW, torch.full_like(prompt_BTHW[:, :1], self.mask_token_id)
                                  .expand(-1, num_new_frames, -1, -1)], dim=1)
         if use_cache:
             kv_cache = self.new_kv_cache(total)
-            self._run_frames(prompt_BTHW, 0, kv_cache, commit=T0, readout=False)
+            self._run_frames(prompt_BTHW, 0, kv_cache, commit=T0, readout=False,
+                             cond_BTC=_frames(cond_BTC, 0, T0))
         all_logits = []
         for t in range(T0, total):
             if use_cache:
                 def logits_fn(frame_BHW):
-                    return self._run_frames(frame_BHW.unsqueeze(1), t, kv_cache)[:, :, :, 0]
+                    logits_BVF1HW = self._run_frames(frame_BHW.unsqueeze(1), t, kv_cache,
+                                                     cond_BTC=_frames(cond_BTC, t, t + 1))
+                    return logits_BVF1HW[:, :, :, 0]
             else:
                 def logits_fn(frame_BHW):
                     window_BTHW = tokens_BTHW.clone()
                     window_BTHW[:, t] = frame_BHW
-                    return rearrange(self.compute_logits(window_BTHW)[:, :, t], "B (F V) H W -> B V F H W",
+                    return rearrange(self._full_logits(window_BTHW, cond_BTC)[:, :, t], "B (F V) H W -> B V F H W",
                                      F=self.config.num_factored_vocabs)
             sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], self.mask_token_id, maskgit_steps,
                                                       temperature, unmask_mode, generator)
             tokens_BTHW[:, t] = sample_BHW
             all_logits.append(logits_BVFHW)
             if use_cache and t + 1 < total:
-                self._run_frames(sample_BHW.unsqueeze(1), t, kv_cache, commit=1, readout=False)
+                self._run_frames(sample_BHW.unsqueeze(1), t, kv_cache, commit=1, readout=False,
+                                 cond_BTC=_frames(cond_BTC, t, t + 1))
         return tokens_BTHW, torch.stack(all_logits, dim=3)
 
     @torch.no_grad()
     def teacher_forced(self, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperature: float = 0.0,
                        unmask_mode: str = "random", use_cache: bool = True,
-                       generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+                       generator: Optional[torch.Generator] = None, actions: Optional[torch.Tensor] = None,
+                       latent_actions: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
         """The challenge protocol: predict each frame t = 1..T-1 of a window from ground-truth frames 0..t-1.
 
         x_BTHW: (B, T, H, W) ground-truth token ids, 2 <= T <= config.T.
+        actions (B, T, D), latent_actions (B, T): per-frame action rows (models with action inputs). Target t knows
+        rows < t only: the real action of frame t-1, not the latent action inferred from frame t itself.
         With the cache, frames 0..T-2 are computed once and all T-1 targets go through the model together in one
         pass per MaskGIT step (target t attends to the cached frames < t and to itself). Without it, every target
         and every step recomputes the whole window with frames >= t masked (the published evaluator).
@@ -237,13 +297,18 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             raise ValueError(f"teacher forcing needs windows of at least 2 frames, got {T}")
         self._check_tokens(x_BTHW)
         n = T - 1
+        # context frames (all < every target that sees them) know all their rows; target t knows rows < t
+        context_cond_BTC = self.action_embeds(B, T, actions, latent_actions, T)
+        target_cond_BTC = self.action_embeds(B, T, actions, latent_actions, torch.arange(T))
         if use_cache:
             kv_cache = self.new_kv_cache(n)
-            self._run_frames(x_BTHW[:, :n], 0, kv_cache, commit=n, readout=False)
+            self._run_frames(x_BTHW[:, :n], 0, kv_cache, commit=n, readout=False,
+                             cond_BTC=_frames(context_cond_BTC, 0, n))
 
             def logits_fn(frames_NHW):
                 frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
-                logits_BVFnHW = self._run_frames(frames_BnHW, 1, kv_cache, targets=True)
+                logits_BVFnHW = self._run_frames(frames_BnHW, 1, kv_cache, targets=True,
+                                                 cond_BTC=_frames(target_cond_BTC, 1, T))
                 return rearrange(logits_BVFnHW, "B V F n H W -> (B n) V F H W")
         else:
             def logits_fn(frames_NHW):
@@ -253,7 +318,8 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
                     window_BTHW = x_BTHW.clone()
                     window_BTHW[:, t] = frames_BnHW[:, t - 1]
                     window_BTHW[:, t + 1:] = self.mask_token_id
-                    per_target.append(self.compute_logits(window_BTHW)[:, :, t])
+                    cond_BTC = self.action_embeds(B, T, actions, latent_actions, t)
+                    per_target.append(self._full_logits(window_BTHW, cond_BTC)[:, :, t])
                 return rearrange(torch.stack(per_target, dim=1), "B n (F V) H W -> (B n) V F H W",
                                  F=self.config.num_factored_vocabs)
 
@@ -335,6 +401,11 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             raise CheckpointError(f"{weights_path}: cannot read safetensors weights ({e})") from None
         model.load_checkpoint_state_dict(state_dict, source=str(weights_path))
         return model.eval()
+
+
+def _frames(cond_BTC: Optional[torch.Tensor], start: int, end: int) -> Optional[torch.Tensor]:
+    """Action embeddings of window frames start..end-1, or None for a model without action inputs."""
+    return None if cond_BTC is None else cond_BTC[:, start:end]
 
 
 def _looks_like_hub_id(name: str) -> bool:

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# The main job on the embedded sample world (run ./build.sh first):
+#   1. train a small GENIE on data/sample/train          -> data/genie_model/final_checkpt
+#   2. generate from held-out prompts of data/sample/val -> data/genie_model/generated (tokens)
+#   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
+#   4. evaluate with the challenge metrics + the copy-the-last-frame baselines -> data/genie_model/metrics.json
+# Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
+# variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES and EVAL_ARGS (extra evaluate.py flags) change the defaults below.
+set -euo pipefail
+cd "$(dirname "$0")"
+PY=venv/bin/python
+SAMPLE_DIR=${SAMPLE_DIR:-data/sample}
+OUT=${OUT:-data/genie_model}
+GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/sample_world.json}
+TRAIN=$SAMPLE_DIR/train
+VAL=$SAMPLE_DIR/val
+[ -f "$TRAIN/metadata.json" ] || { echo "run_sample.sh: $TRAIN is missing; run ./build.sh first" >&2; exit 1; }
+
+"$PY" train.py --genie_config "$GENIE_CONFIG" --train_data_dir "$TRAIN" --val_data_dir "$VAL" \
+  --output_dir "$OUT" --per_device_train_batch_size 8 --learning_rate 3e-3 --lr_scheduler_type cosine \
+  --num_warmup_steps 50 --max_train_steps 600 --weight_decay 0.05 --eval_every_n_steps 200 --max_eval_steps 8 \
+  --checkpointing_steps 200 --resume_from_checkpoint latest "$@"
+
+"$PY" genie/generate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --output_dir "$OUT/generated" \
+  --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --maskgit_steps 2 --temperature 0
+"$PY" visualize.py --token_dir "$OUT/generated" --output_dir "$OUT" --fps 4
+
+"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" ${EVAL_ARGS:-} | tee "$OUT/eval.log"
+"$PY" -m genie.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" | tee "$OUT/baselines.log"
+tail -n 1 "$OUT/eval.log" > "$OUT/metrics.json"
+tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"
+echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png   metrics: $OUT/metrics.json (baselines: $OUT/baselines.json)"
