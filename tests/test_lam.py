@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from genie import label_latent_actions, train_lam
 from genie.action_probe import action_probe, button_combination_ids, combination_name, transition_labels
 from genie.config import ConfigError
-from genie.lam import LAM, LAMConfig, VectorQuantizer, psnr
+from genie.lam import LAM, LAMConfig, VectorQuantizer, local_correlation, psnr
 from genie.lam_data import gather_transitions, valid_targets
 
 TINY = dict(image_size=16, channels=[8, 16], latent_dim=8, codebook_size=8, dead_code_steps=20)
@@ -64,6 +64,26 @@ def test_config_json_round_trip_and_errors():
         LAMConfig(image_size=20, channels=[8, 16, 32])
     with pytest.raises(ConfigError, match="codebook_size"):
         LAMConfig(codebook_size=1)
+    with pytest.raises(ConfigError, match="lowres_pool"):
+        LAMConfig(image_size=64, lowres_pool=6)
+
+
+def test_reconstruction_sees_next_frame_only_through_the_code():
+    torch.manual_seed(0)
+    model = LAM(LAMConfig(**TINY)).eval()
+    past, nxt = torch.rand(6, 1, 3, 16, 16) * 2 - 1, torch.rand(6, 3, 16, 16) * 2 - 1
+    out = model(past, nxt)
+    assert torch.allclose(out.recon, model.decode_with_actions(past, out.action_ids), atol=1e-6)
+
+
+def test_local_correlation_peaks_at_the_displacement():
+    radius = 3
+    a = torch.randn(2, 16, 12, 12)
+    b = torch.roll(a, shifts=(1, -2), dims=(2, 3))  # b[y + 1, x - 2] = a[y, x]
+    corr = local_correlation(a, b, radius)
+    assert corr.shape == (2, (2 * radius + 1) ** 2, 12, 12)
+    best = corr[:, :, 3:-3, 3:-3].argmax(dim=1)  # positions whose whole window lies inside the map
+    assert (best == (1 + radius) * (2 * radius + 1) + (-2 + radius)).all()
 
 
 def test_vq_straight_through_gradient():
