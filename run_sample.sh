@@ -18,15 +18,15 @@ VAL=$SAMPLE_DIR/val
 
 "$PY" train.py --genie_config "$GENIE_CONFIG" --train_data_dir "$TRAIN" --val_data_dir "$VAL" \
   --output_dir "$OUT" --per_device_train_batch_size 8 --learning_rate 3e-3 --lr_scheduler_type cosine \
-  --num_warmup_steps 50 --max_train_steps 600 --weight_decay 0.05 --eval_every_n_steps 200 --max_eval_steps 8 \
+  --num_warmup_steps 30 --max_train_steps 400 --weight_decay 0.05 --eval_every_n_steps 200 --max_eval_steps 8 \
   --checkpointing_steps 200 --resume_from_checkpoint latest "$@"
 
 "$PY" genie/generate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --output_dir "$OUT/generated" \
-  --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --maskgit_steps 2 --temperature 0
+  --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --example_stride "${EXAMPLE_STRIDE:-2500}" --maskgit_steps 2 --temperature 0
 "$PY" visualize.py --token_dir "$OUT/generated" --output_dir "$OUT" --fps 4
 
-"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" ${EVAL_ARGS:-} | tee "$OUT/eval.log"
-"$PY" -m genie.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" | tee "$OUT/baselines.log"
+"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --max_examples 120 ${EVAL_ARGS:-} | tee "$OUT/eval.log"
+"$PY" -m genie.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" --max_examples 120 | tee "$OUT/baselines.log"
 tail -n 1 "$OUT/eval.log" > "$OUT/metrics.json"
 tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"
 echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png   metrics: $OUT/metrics.json (baselines: $OUT/baselines.json)"

@@ -55,7 +55,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "generated.")
     p.add_argument("--stride", type=int, default=15, help="Frames between consecutive frames of a window.")
     p.add_argument("--example_ind", type=int, default=0, help="Dataset index of the first window to generate on.")
-    p.add_argument("--num_examples", type=int, default=1, help="Consecutive windows to generate on.")
+    p.add_argument("--num_examples", type=int, default=1, help="Windows to generate on.")
+    p.add_argument("--example_stride", type=int, default=1,
+                   help="Dataset indices between consecutive examples (1: consecutive windows, which overlap and "
+                        "look alike; a large value spreads the examples over the dataset).")
     p.add_argument("--batch_size", type=int, default=8, help="Windows generated at once.")
     p.add_argument("--teacher_force_time", action="store_true",
                    help="Predict frame t from the ground truth of frames < t (as the challenge metrics do) instead "
@@ -73,7 +76,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu).")
     p.add_argument("--seed", type=int, default=0, help="Seed of the sampling randomness.")
     args = p.parse_args(argv)
-    for name in ("window_size", "stride", "num_examples", "batch_size", "maskgit_steps"):
+    for name in ("window_size", "stride", "num_examples", "example_stride", "batch_size", "maskgit_steps"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     if not 1 <= args.num_prompt_frames < args.window_size:
@@ -120,7 +123,7 @@ def check_compatible(model: STMaskGIT, dataset: RawTokenDataset, args) -> None:
             raise GenerationError(f"--latent_actions: ids {bad} are outside [0, {K}) (the checkpoint's LAM codebook)")
     if args.actions_from_data and not config.uses_actions:
         raise GenerationError(f"--actions_from_data: the checkpoint {args.checkpoint_dir} takes no actions")
-    last = args.example_ind + args.num_examples - 1
+    last = args.example_ind + (args.num_examples - 1) * args.example_stride
     if last >= len(dataset):
         raise GenerationError(f"{dataset.data_dir}: examples {args.example_ind}..{last} requested but the dataset has "
                               f"{len(dataset)} windows of {args.window_size} frames with stride {args.stride}")
@@ -207,7 +210,8 @@ def generate(args) -> dict:
                if model.config.uses_actions else None)
 
     outputs, latent_outputs, seconds = [], [], 0.0
-    indices = list(range(args.example_ind, args.example_ind + args.num_examples))
+    indices = list(range(args.example_ind, args.example_ind + args.num_examples * args.example_stride,
+                         args.example_stride))
     for a in tqdm(range(0, len(indices), args.batch_size), desc="generate", unit="batch"):
         batch_indices = indices[a:a + args.batch_size]
         gt_BTHW = load_windows(dataset, batch_indices, s).to(device)
@@ -228,6 +232,7 @@ def generate(args) -> dict:
 
     metadata = {k: v for k, v in dataset.metadata.items() if k != "num_images"}
     metadata.update(num_prompt_frames=P, window_size=T, num_examples=len(indices), example_ind=args.example_ind,
+                    example_stride=args.example_stride,
                     frames_per_example=frames_per_example, teacher_force_time=args.teacher_force_time,
                     maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
                     stride=args.stride, checkpoint_dir=str(args.checkpoint_dir), val_data_dir=str(args.val_data_dir))
