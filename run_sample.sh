@@ -3,9 +3,10 @@
 #   1. train a small GENIE on data/sample/train          -> data/genie_model/final_checkpt
 #   2. generate from held-out prompts of data/sample/val -> data/genie_model/generated (tokens)
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
-#   4. evaluate with the challenge metrics + the copy-the-last-frame baselines -> data/genie_model/metrics.json
+#   4. evaluate with the challenge metrics + the copy-the-last-frame baselines -> data/genie_model/*.json
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
-# variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES and EVAL_ARGS (extra evaluate.py flags) change the defaults below.
+# variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, EVAL_ARGS and
+# LPIPS_EVAL_ARGS (extra evaluate.py flags of the two evaluations) change the defaults below.
 set -euo pipefail
 cd "$(dirname "$0")"
 PY=venv/bin/python
@@ -25,8 +26,14 @@ VAL=$SAMPLE_DIR/val
   --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --example_stride "${EXAMPLE_STRIDE:-2500}" --maskgit_steps 2 --temperature 0
 "$PY" visualize.py --token_dir "$OUT/generated" --output_dir "$OUT" --fps 4
 
-"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --max_examples 120 ${EVAL_ARGS:-} | tee "$OUT/eval.log"
-"$PY" -m genie.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" --max_examples 120 | tee "$OUT/baselines.log"
+# CE and accuracy on every validation window; LPIPS (decodes every frame, slow on CPU) on the first 60.
+"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --skip_lpips ${EVAL_ARGS:-} \
+  | tee "$OUT/eval.log"
+"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" ${LPIPS_EVAL_ARGS:---max_examples 60} \
+  | tee "$OUT/eval_lpips.log"
+"$PY" -m genie.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" | tee "$OUT/baselines.log"
 tail -n 1 "$OUT/eval.log" > "$OUT/metrics.json"
+tail -n 1 "$OUT/eval_lpips.log" > "$OUT/metrics_lpips.json"
 tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"
-echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png   metrics: $OUT/metrics.json (baselines: $OUT/baselines.json)"
+echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png"
+echo "metrics: $OUT/metrics.json (LPIPS: $OUT/metrics_lpips.json; copy baselines: $OUT/baselines.json)"

@@ -48,7 +48,7 @@ def parse_args(argv=None):
     p.add_argument("--codebook_size", type=int, default=None, help="number of latent actions (default 8)")
     p.add_argument("--latent_dim", type=int, default=None, help="width of the latent action vectors (default 32)")
     p.add_argument("--channels", default=None, help="comma-separated conv widths per level (default 16,32,64)")
-    p.add_argument("--max_train_steps", type=int, default=800, help="optimizer steps")
+    p.add_argument("--max_train_steps", type=int, default=1200, help="optimizer steps")
     p.add_argument("--batch_size", type=int, default=32, help="transitions per step")
     p.add_argument("--learning_rate", type=float, default=1e-3, help="peak AdamW learning rate")
     p.add_argument("--weight_decay", type=float, default=0.0, help="AdamW weight decay")

@@ -37,7 +37,7 @@ def test_main_job_pipeline_tiny(tmp_path):
                                   "image_vocab_size": 262144, "num_prompt_frames": 8}))
     out = tmp_path / "model"
     env = dict(os.environ, SAMPLE_DIR=str(sample), OUT=str(out), GENIE_CONFIG=str(config),
-               EVAL_ARGS="--skip_lpips --max_examples 1", NUM_EXAMPLES="1")
+               EVAL_ARGS="--max_examples 1", LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", NUM_EXAMPLES="1")
     subprocess.run(["bash", str(REPO / "run_sample.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     assert (out / "final_checkpt" / "model.safetensors").exists()
@@ -46,5 +46,6 @@ def test_main_job_pipeline_tiny(tmp_path):
     assert Image.open(gifs[0]).n_frames > 1
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["num_examples"] == 1 and 0 <= metrics["acc"] <= 1 and metrics["pred_lpips"] is None
+    assert json.loads((out / "metrics_lpips.json").read_text())["num_examples"] == 1
     baselines = json.loads((out / "baselines.json").read_text())
     assert 0 <= baselines["copy_acc"] <= 1
