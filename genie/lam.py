@@ -7,6 +7,12 @@ The decoder sees the next frame only through the K-way bottleneck, so to reconst
 changed between the frames that the past cannot predict: the action. At inference only the codebook is used: the
 dynamics model takes code ids (`infer_actions` labels a video, `decode_with_actions` shows what a code does).
 
+Small-compute choices that make the codes track camera motion: a cost volume in the encoder (sees large shifts), a
+flow warp in the decoder (makes motion cheap to express) and an extra loss on average-pooled frames (at 64 px,
+unpredictable texture outweighs where the view moved). On a small sample-world subset (700 steps) the codes
+explained ~2-3% of the heading change without the cost volume and the pooled loss, ~17% with both. Euclidean VQ
+with data-initialised codes and dead-code restarts keeps all codes in use.
+
 Frames are float tensors in [-1, 1], channels first. `past` holds `num_past_frames` frames spaced `stride` raw
 frames apart, oldest first; `next` is the frame `stride` raw frames after the last past frame.
 """
