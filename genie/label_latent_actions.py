@@ -18,7 +18,6 @@ latent_action_num_past_frames, the fallback counts and the code histogram; metad
 import argparse
 import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ import torch
 from genie.config import load_json
 from genie.lam import LAM
 from genie.lam_data import infer_codes, load_frames_npz, valid_targets
+from genie.train_state import atomic_file
 
 logger = logging.getLogger("label_latent_actions")
 ACTION_NAME = "latent_action"
@@ -84,15 +84,6 @@ def fill_codes(segment_ids: np.ndarray, targets: np.ndarray, codes: np.ndarray,
                  "num_fallback_most_frequent": int((~same_segment).sum())}
 
 
-def write_atomic(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def label(args) -> dict:
     if args.num_threads > 0:
         torch.set_num_threads(args.num_threads)
@@ -114,7 +105,7 @@ def label(args) -> dict:
     actions_dir = token_dir / "actions"
     actions_dir.mkdir(exist_ok=True)
     array_N1 = per_frame.astype(np.float32).reshape(-1, 1)
-    write_atomic(actions_dir / f"{ACTION_NAME}.bin", lambda tmp: array_N1.tofile(tmp))
+    atomic_file(actions_dir / f"{ACTION_NAME}.bin", lambda tmp: array_N1.tofile(tmp))
     sidecar = {
         "latent_action_stride": cfg.stride,
         "latent_action_codebook_size": cfg.codebook_size,
@@ -128,7 +119,7 @@ def label(args) -> dict:
         "frames": str(args.frames),
     }
     text = json.dumps(sidecar, indent=2) + "\n"
-    write_atomic(actions_dir / f"{ACTION_NAME}.json", lambda tmp: tmp.write_text(text))
+    atomic_file(actions_dir / f"{ACTION_NAME}.json", lambda tmp: tmp.write_text(text))
     return sidecar
 
 

@@ -19,7 +19,6 @@ frames apart, oldest first; `next` is the frame `stride` raw frames after the la
 import dataclasses
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -32,6 +31,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from genie.config import ConfigError, dataclass_from_dict, load_json
+from genie.train_state import atomic_file
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
@@ -461,9 +461,9 @@ class LAM(nn.Module):
         save_dir = Path(save_dir)
         save_dir.mkdir(parents=True, exist_ok=True)
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
-        _atomic_write(save_dir / WEIGHTS_NAME, lambda tmp: save_file(state, str(tmp), metadata={"format": "pt"}))
+        atomic_file(save_dir / WEIGHTS_NAME, lambda tmp: save_file(state, str(tmp), metadata={"format": "pt"}))
         text = json.dumps(self.config.to_dict(), indent=2, sort_keys=True) + "\n"
-        _atomic_write(save_dir / CONFIG_NAME, lambda tmp: tmp.write_text(text))
+        atomic_file(save_dir / CONFIG_NAME, lambda tmp: tmp.write_text(text))
 
     @classmethod
     def from_pretrained(cls, load_dir, device="cpu") -> "LAM":
@@ -489,15 +489,6 @@ class LAM(nn.Module):
                              f"unexpected {unexpected[:5]}, wrong shape {wrong[:5]}")
         model.load_state_dict(state)
         return model.to(device)
-
-
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def frames_to_tensor(frames_NHWC) -> torch.Tensor:

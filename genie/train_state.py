@@ -54,6 +54,17 @@ def read_json(path, what: str):
         raise TrainingStateError(f"{path}: {what} is not valid JSON ({e})") from None
 
 
+def atomic_file(path, write) -> None:
+    """Write one file atomically: `write(tmp_path)` fills a temporary sibling that then replaces `path`."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 @contextlib.contextmanager
 def atomic_directory(final_dir):
     """Yield a temporary directory; on success mark it complete and rename it to `final_dir` (replacing it).

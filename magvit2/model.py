@@ -26,6 +26,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from genie.config import ConfigError
+from genie.train_state import atomic_file
 from magvit2.config import VQConfig
 from magvit2.lfq import LFQ, LFQOutput, ids_to_latents, latents_to_ids
 from magvit2.modules import Decoder, Encoder
@@ -134,8 +135,8 @@ class VQModel(nn.Module):
         save_directory.parent.mkdir(parents=True, exist_ok=True)
         state_dict = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
         if save_directory.exists():
-            _atomic_write(save_directory / CONFIG_NAME, lambda p: self.config.save(p))
-            _atomic_write(save_directory / WEIGHTS_NAME, lambda p: save_file(state_dict, p, {"format": "pt"}))
+            atomic_file(save_directory / CONFIG_NAME, lambda p: self.config.save(p))
+            atomic_file(save_directory / WEIGHTS_NAME, lambda p: save_file(state_dict, p, {"format": "pt"}))
             return
         tmp_dir = Path(tempfile.mkdtemp(prefix=f".{save_directory.name}.", dir=save_directory.parent))
         os.chmod(tmp_dir, 0o755)  # mkdtemp makes it private; the checkpoint is an ordinary directory
@@ -208,15 +209,6 @@ def _check_token_range(ids: torch.Tensor, config: VQConfig) -> None:
     if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= config.codebook_size):
         raise ValueError(f"token ids must be in [0, {config.codebook_size}) for z_channels={config.z_channels}, "
                          f"got values in [{int(ids.min())}, {int(ids.max())}]")
-
-
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _load_directory(path: Path) -> Tuple[Dict[str, torch.Tensor], VQConfig]:
