@@ -1,6 +1,7 @@
 """Training throughput (tokens/s) of STMaskGIT: the issue's reference shape, one full optimizer step per iteration.
 
     python benchmarks/bench_train.py                       # 8 layers, d_model 256, T 16, 16x16, batch 2, fp32, CPU
+    python benchmarks/bench_train.py --mixed_precision bf16  # CPU bf16 autocast (CPUs with avx512_bf16 / AMX)
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
 
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
@@ -36,6 +37,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--mixed_precision", default="no", choices=("no", "bf16"),
                    help="bf16 autocast (CUDA, or CPUs with native bf16 such as avx512_bf16).")
     p.add_argument("--compile", action="store_true", help="torch.compile the model.")
+    p.add_argument("--num_threads", type=int, default=None,
+                   help="torch CPU threads (default: torch's choice, one per core); use 1 on a shared machine.")
     p.add_argument("--profile", action="store_true", help="Print the top operators of one profiled step.")
     return p.parse_args(argv)
 
@@ -60,6 +63,8 @@ def make_step(model, optimizer, collate, windows, device, mixed_precision):
 def main(argv=None) -> None:
     args = parse_args(argv)
     device = torch.device(args.device)
+    if args.num_threads is not None:
+        torch.set_num_threads(args.num_threads)
     config = GenieConfig(num_layers=args.num_layers, num_heads=args.num_heads, d_model=args.d_model, T=args.T,
                          S=args.s ** 2, image_vocab_size=args.image_vocab_size)
     torch.manual_seed(0)

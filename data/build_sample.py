@@ -9,6 +9,7 @@
 Each step is skipped when its output already exists and matches, so a second run is cheap.
 """
 import argparse
+import hashlib
 import json
 import subprocess
 import sys
@@ -51,14 +52,20 @@ def resolve_tokenizer(path: str) -> Path:
     return p
 
 
+def split_stamp(raw_npz: Path, tokenizer_dir: Path) -> dict:
+    """What a token dataset was built from: the raw frames (path, mtime) and the tokenizer weights (content hash,
+    so a fresh checkout of the same weights is recognised while new weights are not)."""
+    digest = hashlib.sha256((tokenizer_dir / "model.safetensors").read_bytes()).hexdigest()
+    return {"raw": str(raw_npz), "raw_mtime": raw_npz.stat().st_mtime, "tokenizer_sha256": digest}
+
+
 def tokenize_split(raw_npz: Path, out_dir: Path, tokenizer_dir: Path, tokenizer_ref: str, batch_size: int,
                    device: str, overwrite: bool) -> None:
     """Encode one split's npz into a token dataset, unless an up-to-date one is already there."""
     from magvit2 import VQModel
     from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 
-    stamp = {"raw": str(raw_npz), "raw_mtime": raw_npz.stat().st_mtime,
-             "tokenizer_mtime": (tokenizer_dir / "model.safetensors").stat().st_mtime}
+    stamp = split_stamp(raw_npz, tokenizer_dir)
     stamp_path = out_dir / "build_stamp.json"
     if not overwrite and stamp_path.exists() and json.loads(stamp_path.read_text()) == stamp:
         print(f"{out_dir}: token dataset up to date; skipping")

@@ -12,6 +12,15 @@ def _uniform(low: float, high: float, size, generator) -> torch.Tensor:
     return low + (high - low) * torch.rand(size, generator=generator)
 
 
+def _whole_frame_masks(n: int, T: int, H: int, W: int, generator) -> torch.Tensor:
+    """(n, T, H, W) bool: each frame 1..T-1 fully masked with probability 1/2, at least one per example."""
+    masked_nT = torch.rand(n, T, generator=generator) < 0.5
+    masked_nT[:, 0] = False
+    none = ~masked_nT.any(dim=1)
+    masked_nT[none, torch.randint(1, T, (int(none.sum()),), generator=generator)] = True
+    return masked_nT[:, :, None, None].expand(n, T, H, W)
+
+
 def get_maskgit_collator(config: GenieConfig, seed=None):
     """Return collate_fn(features) -> {"input_ids": (B, T*S), "labels": (B, T*S)} int64 (+ "actions" (B, T, D)).
 
@@ -24,6 +33,11 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
        starts at U(0.25, 1) and shrinks by a U(0.9, 1) factor per frame; otherwise first_masked_frame = 1;
     3. each frame >= first_masked_frame of each example masks each token with probability cosine_schedule(U(0, 1))
        (redrawn when the whole batch got no mask); masked tokens become config.mask_token_id. Frame 0 is never masked.
+    4. opt-in (config.teacher_forced_ratio > 0, not in the published recipe): that fraction of the examples is
+       instead masked the way the challenge evaluates: each frame >= 1 is fully masked with probability 1/2 (at
+       least one is), the others keep their tokens with step 1's light corruption only (not step 2's). A masked frame
+       after a kept one is then predicted from whole earlier frames, nothing of itself revealed, which the published
+       masking rarely shows a model (its frames are partly masked, and the frames before them too).
 
     seed: None draws from torch's global RNG (seeded per DataLoader worker and by accelerate's set_seed); an int
     uses a private generator, seeded with seed + worker id inside DataLoader workers, so results are reproducible.
@@ -57,6 +71,7 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
         corrupt_rate = config.max_corrupt_rate * torch.rand((), generator=g)
         corrupt = torch.rand(x_BTHWF.shape, generator=g) < corrupt_rate
         x_BTHWF = torch.where(corrupt, random_BTHWF, x_BTHWF)
+        lightly_corrupted_BTHWF = x_BTHWF.clone() if config.teacher_forced_ratio > 0 else None
 
         if torch.rand((), generator=g) < config.non_mlm_ratio:
             first_masked_frame = int(torch.randint(config.num_prompt_frames, T, (), generator=g))
@@ -74,8 +89,14 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
             mask_prob_BT11 = cosine_schedule(torch.rand(B, T - first_masked_frame, 1, 1, generator=g))
             mask = torch.rand(B, T - first_masked_frame, H, W, generator=g) < mask_prob_BT11
 
+        mask_BTHW = torch.zeros(B, T, H, W, dtype=torch.bool)
+        mask_BTHW[:, first_masked_frame:] = mask
+        if lightly_corrupted_BTHWF is not None:
+            forced_B = torch.rand(B, generator=g) < config.teacher_forced_ratio
+            x_BTHWF[forced_B] = lightly_corrupted_BTHWF[forced_B]
+            mask_BTHW[forced_B] = _whole_frame_masks(int(forced_B.sum()), T, H, W, g)
         x_BTHW = unfactorize_token_ids(x_BTHWF, F, V)
-        x_BTHW[:, first_masked_frame:][mask] = config.mask_token_id
+        x_BTHW[mask_BTHW] = config.mask_token_id
         batch = {"input_ids": rearrange(x_BTHW, "b t h w -> b (t h w)"),
                  "labels": rearrange(labels_BTHW, "b t h w -> b (t h w)")}
         has_actions = ["actions" in ex for ex in features]

@@ -63,9 +63,29 @@ class SelfAttention(nn.Module):
         attn_mask: optional bool (Nq, Nk), True where a query may attend to a key.
         """
         dropout_p = self.attn_drop if self.training else 0.0
-        x_BhNd = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, is_causal=is_causal,
-                                                dropout_p=dropout_p, scale=self.scale)
+        if q.device.type == "cpu" and q.dtype == torch.bfloat16:
+            x_BhNd = self._attend_bf16_cpu(q, k, v, attn_mask, is_causal, dropout_p)
+        else:
+            x_BhNd = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, is_causal=is_causal,
+                                                    dropout_p=dropout_p, scale=self.scale)
         return self.proj(rearrange(x_BhNd, "B h N d -> B N (h d)"))
+
+    def _attend_bf16_cpu(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor,
+                         attn_mask: Optional[torch.Tensor], is_causal: bool, dropout_p: float) -> torch.Tensor:
+        """Attention written out for bf16 on CPU: (B, h, Nq, d) -> (B, h, Nq, d).
+
+        torch's fused CPU attention kernel is slow in bf16 for many short sequences (the temporal attention: B*S
+        sequences of T frames), backward most of all; two bf16 matmuls with an fp32 softmax in between use the CPU's
+        native bf16 dot products instead (benchmarks/bench_train.py --mixed_precision bf16).
+        """
+        scores = (q @ k.transpose(-1, -2)).float() * self.scale
+        if is_causal:
+            future = torch.ones(scores.shape[-2:], dtype=torch.bool, device=q.device).triu(1)  # top-left, as SDPA
+            scores = scores.masked_fill(future, float("-inf"))
+        if attn_mask is not None:
+            scores = scores.masked_fill(~attn_mask, float("-inf"))
+        probs = F.dropout(scores.softmax(dim=-1), p=dropout_p) if dropout_p else scores.softmax(dim=-1)
+        return probs.to(v.dtype) @ v
 
     def forward(self, x_BNC: torch.Tensor, causal: bool = False) -> torch.Tensor:
         q, k, v = self.project_qkv(x_BNC)

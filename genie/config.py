@@ -108,6 +108,9 @@ class GenieConfig:
     action_std: Optional[List[float]] = None
     num_latent_actions: int = 0  # LAM codebook size; ids come from actions/latent_action.bin (0 = off)
     action_dropout: float = 0.1  # training: probability that a frame's action inputs are replaced by "no action"
+    # Training examples masked as the challenge evaluates (data.get_maskgit_collator): each frame >= 1 either
+    # fully masked or clean, so masked frames are predicted from whole earlier frames (0 = published recipe).
+    teacher_forced_ratio: float = 0.0
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -129,6 +132,8 @@ class GenieConfig:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         if not 0.0 <= self.max_corrupt_rate <= 1.0 or not 0.0 <= self.non_mlm_ratio <= 1.0:
             raise ConfigError("GenieConfig: max_corrupt_rate and non_mlm_ratio must be in [0, 1]")
+        if not 0.0 <= self.teacher_forced_ratio <= 1.0:
+            raise ConfigError(f"GenieConfig: teacher_forced_ratio must be in [0, 1], got {self.teacher_forced_ratio}")
         self._check_actions()
 
     def _check_actions(self) -> None:

@@ -9,6 +9,7 @@ Both take `use_cache=False` for the straightforward full recomputation (the refe
 With opt-in action inputs (config.action_names / num_latent_actions, genie/actions.py) every entry point takes
 per-frame `actions` (B, T, D) and `latent_actions` (B, T) and applies the same known-rows rule in both paths.
 """
+import math
 import os
 import shutil
 import tempfile
@@ -85,12 +86,20 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.action_cond = ActionConditioning(config) if config.uses_actions else None
 
     def init_weights(self) -> None:
-        """Normal(0, 0.02) for Linear and Embedding weights, zero biases (as published)."""
+        """Normal(0, 0.02) for Linear and Embedding weights, zero biases (as published); sin-cos positions.
+
+        The published code leaves pos_embed_TSC at zero, so at first temporal attention cannot tell the previous
+        frame from any earlier one and must learn positions from scratch before it can learn to copy; a sin-cos
+        start (of the same scale as the token embeddings) makes a small model learn that in a few hundred steps.
+        Loading a checkpoint replaces it, so published weights behave exactly as published.
+        """
         for module in self.modules():
             if isinstance(module, (nn.Linear, nn.Embedding)):
                 nn.init.normal_(module.weight, mean=0.0, std=0.02)
             if isinstance(module, nn.Linear) and module.bias is not None:
                 nn.init.zeros_(module.bias)
+        with torch.no_grad():
+            self.pos_embed_TSC.copy_(sincos_pos_embed(self.config.T, self.config.S, self.config.d_model))
 
     # ---------------------------------------------------------------- core computation
     def _check_tokens(self, x_BTHW: torch.Tensor, first_frame: int = 0) -> None:
@@ -438,3 +447,28 @@ def resolve_checkpoint_dir(name_or_path: Union[str, Path], revision: Optional[st
             f"download it with `huggingface-cli download {name_or_path} --local-dir <dir>` and pass that "
             f"directory instead.") from None
     return Path(files[0]).parent
+
+
+def sincos_pos_embed(T: int, S: int, d_model: int, std: float = 0.02) -> torch.Tensor:
+    """Fixed sin-cos positions (1, T, S, d_model) with per-element RMS `std`.
+
+    Half of the channels encode the frame index, the other half the token index within the frame (row and column
+    when S is a square, else the flat index), each as sin/cos pairs over geometrically spaced frequencies.
+    """
+    def encode(positions: torch.Tensor, dim: int) -> torch.Tensor:
+        freqs = 1.0 / (100.0 ** (torch.arange(dim // 2, dtype=torch.float64) / max(dim // 2, 1)))
+        angles = positions.double()[:, None] * freqs[None]
+        return torch.cat([angles.sin(), angles.cos()], dim=-1)
+
+    d_time = d_model // 2 // 2 * 2
+    d_space = d_model - d_time
+    side = math.isqrt(S)
+    time_TC = encode(torch.arange(T), d_time)
+    if side * side == S and d_space % 4 == 0:
+        rows, cols = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
+        space_SC = torch.cat([encode(rows.flatten(), d_space // 2), encode(cols.flatten(), d_space // 2)], dim=-1)
+    else:
+        space_SC = encode(torch.arange(S), d_space)
+    space_SC = torch.nn.functional.pad(space_SC, (0, d_space - space_SC.shape[-1]))
+    pos_TSC = torch.cat([time_TC[:, None].expand(T, S, d_time), space_SC[None].expand(T, S, d_space)], dim=-1)
+    return (pos_TSC * (std * math.sqrt(2))).float().unsqueeze(0)

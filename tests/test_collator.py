@@ -142,3 +142,30 @@ def test_with_dataset_and_dataloader(tmp_path):
     batch = next(iter(loader))
     assert batch["input_ids"].shape == (5, T * S) and batch["actions"].shape == (5, T, 2)
     assert torch.equal(batch["labels"][3], ds[3]["input_ids"])
+
+
+@pytest.mark.parametrize("non_mlm_ratio", [0.0, 1.0])
+def test_teacher_forced_examples_mask_whole_frames_over_clean_context(non_mlm_ratio):
+    config = tiny_config(teacher_forced_ratio=1.0, max_corrupt_rate=0.0, non_mlm_ratio=non_mlm_ratio)
+    collate = get_maskgit_collator(config, seed=0)
+    for step in range(20):
+        batch = collate(make_features(4, seed=step))
+        x, labels = frames(batch["input_ids"]), frames(batch["labels"])
+        masked = x == config.mask_token_id
+        per_frame = masked.sum(-1)
+        assert ((per_frame == 0) | (per_frame == S)).all(), "a frame is either fully masked or not at all"
+        assert (per_frame[:, 0] == 0).all() and (per_frame[:, 1:] > 0).any(dim=1).all()
+        # kept frames are clean even when the batch drew the non-MLM corruption of later frames
+        assert torch.equal(x[~masked], labels[~masked])
+
+
+def test_teacher_forced_ratio_mixes_in_published_masking():
+    config = tiny_config(teacher_forced_ratio=0.5)
+    collate = get_maskgit_collator(config, seed=0)
+    whole, partial = 0, 0
+    for step in range(40):
+        per_frame = (frames(collate(make_features(8, seed=step))["input_ids"]) == config.mask_token_id).sum(-1)
+        example_is_whole = ((per_frame == 0) | (per_frame == S)).all(dim=1)
+        whole += int(example_is_whole.sum())
+        partial += int((~example_is_whole).sum())
+    assert 0.3 < whole / (whole + partial) < 0.75  # ~half (published masks are rarely whole-frame by chance)

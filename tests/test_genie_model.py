@@ -206,7 +206,21 @@ def test_init_weights():
     assert abs(w.std().item() - 0.02) < 0.002
     assert model.decoder.layers[0].mlp.fc1.bias.abs().max() == 0
     assert abs(model.token_embed.factored_embeds[0].weight.std().item() - 0.02) < 0.002
-    assert model.pos_embed_TSC.abs().max() == 0
+    # sin-cos positions: token-embedding scale, every (frame, token) position distinct, nearer frames more alike
+    pos_TSC = model.pos_embed_TSC[0]
+    assert abs(pos_TSC.pow(2).mean().sqrt().item() - 0.02) < 0.002
+    T, S, _ = pos_TSC.shape
+    flat = pos_TSC.reshape(T * S, -1)
+    assert torch.cdist(flat, flat).add(torch.eye(T * S)).min() > 1e-4
+    frame_dist = [torch.dist(pos_TSC[0], pos_TSC[t]).item() for t in range(1, T)]
+    assert frame_dist == sorted(frame_dist)
+
+
+def test_sincos_positions_of_non_square_grids():
+    from genie.st_mask_git import sincos_pos_embed
+    pos = sincos_pos_embed(T=3, S=10, d_model=30)
+    assert pos.shape == (1, 3, 10, 30)
+    assert torch.isfinite(pos).all() and pos.abs().max() > 0
 
 
 def test_checkpoint_round_trip(tmp_path):
@@ -291,3 +305,27 @@ def test_bf16_autocast_forward_runs():
         out = model(x.flatten(1), x.flatten(1))
     assert torch.isfinite(out.loss)
     assert F.cosine_similarity(out.logits.float().flatten(), model.compute_logits(x).detach().flatten(), 0) > 0.99
+
+
+@pytest.mark.parametrize("mask", ["none", "causal", "bool"])
+def test_bf16_cpu_attention_path_matches_fused_fp32(mask):
+    from genie.attention import SelfAttention
+    torch.manual_seed(0)
+    attn = SelfAttention(d_model=32, num_heads=4, qk_norm=True)
+    q, k, v = (torch.randn(3, 4, 6, 8, requires_grad=True) for _ in range(3))
+    attn_mask = torch.rand(6, 6) > 0.3 if mask == "bool" else None
+    if attn_mask is not None:
+        attn_mask.fill_diagonal_(True)
+    kwargs = dict(attn_mask=attn_mask, is_causal=mask == "causal")
+    expected = attn.attend(q, k, v, **kwargs)
+    expected.square().sum().backward()
+    grads = [t.grad.clone() for t in (q, k, v)]
+    for t in (q, k, v):
+        t.grad = None
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = attn.attend(*(t.bfloat16() for t in (q, k, v)), **kwargs)
+    assert got.dtype == torch.bfloat16
+    torch.testing.assert_close(got.float(), expected, atol=5e-2, rtol=5e-2)
+    got.float().square().sum().backward()
+    for grad, t in zip(grads, (q, k, v)):
+        assert F.cosine_similarity(t.grad.flatten(), grad.flatten(), 0) > 0.99
