@@ -120,7 +120,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "gradient; each one is skipped with a warning.")
     g.add_argument("--seed", type=int, default=42, help="Seed of initialization, data order and masking.")
     g.add_argument("--mixed_precision", default="auto", choices=("auto", "no", "bf16"),
-                   help="auto: bf16 autocast on CUDA, fp32 on CPU.")
+                   help="auto: bf16 autocast on CUDA, fp32 on CPU. bf16 on a CPU with native bf16 (avx512_bf16, "
+                        "AMX) trains faster than fp32 (benchmarks/bench_train.py --mixed_precision compare); on "
+                        "other CPUs it is emulated and slow.")
     g.add_argument("--compile", action="store_true", help="torch.compile the model on CPU too (default: CUDA only).")
     g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
     g.add_argument("--overfit_first_batch", action="store_true",

@@ -1,7 +1,7 @@
 """Training throughput (tokens/s) of STMaskGIT: the issue's reference shape, one full optimizer step per iteration.
 
     python benchmarks/bench_train.py                       # 8 layers, d_model 256, T 16, 16x16, batch 2, fp32, CPU
-    python benchmarks/bench_train.py --mixed_precision bf16  # CPU bf16 autocast (CPUs with avx512_bf16 / AMX)
+    python benchmarks/bench_train.py --mixed_precision compare  # fp32 vs CPU bf16 autocast (avx512_bf16 / AMX)
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
 
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
@@ -15,6 +15,7 @@ import time
 import torch
 
 from data import get_maskgit_collator
+from genie.attention import SelfAttention
 from genie.config import GenieConfig
 from genie.st_mask_git import STMaskGIT
 
@@ -34,8 +35,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--warmup_steps", type=int, default=2, help="Untimed steps first.")
     p.add_argument("--steps", type=int, default=5, help="Timed steps.")
     p.add_argument("--device", default="cpu", help="torch device.")
-    p.add_argument("--mixed_precision", default="no", choices=("no", "bf16"),
-                   help="bf16 autocast (CUDA, or CPUs with native bf16 such as avx512_bf16).")
+    p.add_argument("--mixed_precision", default="no", choices=("no", "bf16", "compare"),
+                   help="bf16 autocast (CUDA, or CPUs with native bf16 such as avx512_bf16); compare: fp32, then "
+                        "bf16 with torch's fused attention kernel, then bf16 with the written-out CPU path for the "
+                        "temporal attention, each on a fresh model, with the ratios.")
     p.add_argument("--compile", action="store_true", help="torch.compile the model.")
     p.add_argument("--num_threads", type=int, default=None,
                    help="torch CPU threads (default: torch's choice, one per core); use 1 on a shared machine.")
@@ -60,11 +63,7 @@ def make_step(model, optimizer, collate, windows, device, mixed_precision):
     return step
 
 
-def main(argv=None) -> None:
-    args = parse_args(argv)
-    device = torch.device(args.device)
-    if args.num_threads is not None:
-        torch.set_num_threads(args.num_threads)
+def build(args, device):
     config = GenieConfig(num_layers=args.num_layers, num_heads=args.num_heads, d_model=args.d_model, T=args.T,
                          S=args.s ** 2, image_vocab_size=args.image_vocab_size)
     torch.manual_seed(0)
@@ -72,13 +71,18 @@ def main(argv=None) -> None:
     model.init_weights()
     model.to(device).train()
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4, fused=device.type == "cuda" or None)
-    compiled = torch.compile(model) if args.compile else model
     generator = torch.Generator().manual_seed(0)
     windows = [{"input_ids": torch.randint(0, config.image_vocab_size, (config.T * config.S,), generator=generator)}
                for _ in range(args.batch_size)]
-    step = make_step(compiled, optimizer, get_maskgit_collator(config, seed=0), windows, device,
-                     args.mixed_precision)
+    return config, model, optimizer, windows
 
+
+def measure(args, device, mixed_precision: str, math_path: bool) -> float:
+    """Seconds per optimizer step (wall) of a freshly built model; prints one line."""
+    SelfAttention.cpu_bf16_math_path = math_path
+    config, model, optimizer, windows = build(args, device)
+    compiled = torch.compile(model) if args.compile else model
+    step = make_step(compiled, optimizer, get_maskgit_collator(config, seed=0), windows, device, mixed_precision)
     for _ in range(args.warmup_steps):
         step()
     t0, cpu0 = time.perf_counter(), time.process_time()
@@ -87,18 +91,34 @@ def main(argv=None) -> None:
     seconds = (time.perf_counter() - t0) / args.steps
     cpu_seconds = (time.process_time() - cpu0) / args.steps  # all threads: compare with wall time on busy machines
     tokens_per_s = args.batch_size * config.T * config.S / seconds
-    params = sum(p.numel() for p in model.parameters())
-    print(f"STMaskGIT {args.num_layers} layers, d_model {args.d_model}, T {args.T}, {args.s}x{args.s}, "
-          f"{params / 1e6:.1f} M params, batch {args.batch_size}, {args.mixed_precision}, {device.type}, "
-          f"threads {torch.get_num_threads()}")
-    ratio = tokens_per_s / PUBLISHED_TOKENS_PER_S
-    print(f"{seconds:.3f} s/step (process CPU time {cpu_seconds:.3f} s/step), {tokens_per_s:,.0f} tokens/s; "
-          f"ratio to the published {PUBLISHED_TOKENS_PER_S:,.0f} tokens/s: {ratio:.2f}x")
-
+    label = "fp32" if mixed_precision == "no" else "bf16" if device.type != "cpu" else \
+        f"bf16 ({'written-out temporal' if math_path else 'fused'} attention)"
+    print(f"{label:>30}: {seconds:.3f} s/step (process CPU time {cpu_seconds:.3f} s/step), "
+          f"{tokens_per_s:,.0f} tokens/s, {tokens_per_s / PUBLISHED_TOKENS_PER_S:.2f}x the published "
+          f"{PUBLISHED_TOKENS_PER_S:,.0f} tokens/s", flush=True)
     if args.profile:
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
             step()
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20))
+    return seconds
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    device = torch.device(args.device)
+    if args.num_threads is not None:
+        torch.set_num_threads(args.num_threads)
+    params = sum(p.numel() for p in build(args, device)[1].parameters())
+    print(f"STMaskGIT {args.num_layers} layers, d_model {args.d_model}, T {args.T}, {args.s}x{args.s}, "
+          f"{params / 1e6:.1f} M params, batch {args.batch_size}, {device.type}, threads {torch.get_num_threads()}")
+    if args.mixed_precision != "compare":
+        measure(args, device, args.mixed_precision, math_path=True)
+        return
+    fp32 = measure(args, device, "no", math_path=True)
+    runs = {"fused": measure(args, device, "bf16", math_path=False),
+            "written-out temporal": measure(args, device, "bf16", math_path=True)}
+    for name, seconds in runs.items():
+        print(f"bf16 ({name} attention) vs fp32: {fp32 / seconds:.2f}x")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,11 @@ def attention_scale(head_dim: int, use_mup: bool) -> float:
 
 
 class SelfAttention(nn.Module):
+    # bf16 on CPU, sequences of at most this many keys (the temporal attention): the written-out path below, or
+    # torch's fused kernel when False (benchmarks/bench_train.py compares). Longer ones are faster fused.
+    cpu_bf16_math_path = True
+    cpu_bf16_math_max_keys = 64
+
     def __init__(self, d_model: int, num_heads: int, qkv_bias: bool = False, proj_bias: bool = True,
                  qk_norm: bool = False, use_mup: bool = False, attn_drop: float = 0.0) -> None:
         super().__init__()
@@ -63,7 +68,8 @@ class SelfAttention(nn.Module):
         attn_mask: optional bool (Nq, Nk), True where a query may attend to a key.
         """
         dropout_p = self.attn_drop if self.training else 0.0
-        if q.device.type == "cpu" and q.dtype == torch.bfloat16:
+        if (self.cpu_bf16_math_path and q.device.type == "cpu" and q.dtype == torch.bfloat16
+                and k.shape[-2] <= self.cpu_bf16_math_max_keys):
             x_BhNd = self._attend_bf16_cpu(q, k, v, attn_mask, is_causal, dropout_p)
         else:
             x_BhNd = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, is_causal=is_causal,
@@ -75,8 +81,9 @@ class SelfAttention(nn.Module):
         """Attention written out for bf16 on CPU: (B, h, Nq, d) -> (B, h, Nq, d).
 
         torch's fused CPU attention kernel is slow in bf16 for many short sequences (the temporal attention: B*S
-        sequences of T frames), backward most of all; two bf16 matmuls with an fp32 softmax in between use the CPU's
-        native bf16 dot products instead (benchmarks/bench_train.py --mixed_precision bf16).
+        sequences of T frames; ~3x slower forward + backward at T = 16), while for the spatial attention (S = 256
+        keys) it is the faster one; two bf16 matmuls with an fp32 softmax in between use the CPU's native bf16 dot
+        products instead (benchmarks/bench_train.py --mixed_precision compare).
         """
         scores = (q @ k.transpose(-1, -2)).float() * self.scale
         if is_causal:

@@ -1,0 +1,23 @@
+"""The benchmark scripts still run (tiny shapes): they are how speed claims in the README are reproduced."""
+import importlib.util
+from pathlib import Path
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load(name: str):
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bench_train_compare_runs_fp32_and_both_bf16_attention_paths(capsys):
+    from genie.attention import SelfAttention
+    load("bench_train").main(["--num_layers", "1", "--d_model", "32", "--num_heads", "2", "--s", "4", "--T", "10",
+                              "--image_vocab_size", "4096", "--steps", "1", "--warmup_steps", "0",
+                              "--mixed_precision", "compare"])
+    out = capsys.readouterr().out
+    assert "fp32:" in out and "bf16 (fused attention):" in out and "bf16 (written-out temporal attention):" in out
+    assert "bf16 (written-out temporal attention) vs fp32:" in out
+    assert SelfAttention.cpu_bf16_math_path  # left on for the rest of the process
