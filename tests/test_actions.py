@@ -19,13 +19,7 @@ D, K = 3, 4  # real action width, latent action codebook size
 SMALL = dict(num_layers=2, num_heads=2, d_model=32, T=5, S=16, image_vocab_size=64 ** 2, num_prompt_frames=2)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest on one thread, and the test machine's cores are shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make_model(action_dim: int = D, num_latent_actions: int = K, seed: int = 0, **overrides) -> STMaskGIT:

@@ -16,13 +16,7 @@ TINY = dict(image_size=16, channels=[8, 16], latent_dim=8, codebook_size=8, dead
 SHIFTS = [(0, -2), (0, 2), (-2, 0), (2, 0)]  # the hidden action: roll the image left / right / up / down
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    # These convs are tiny: on a busy 2-core machine, thread hand-offs cost more than they save (10x here).
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def shifted_pairs(gen: torch.Generator, batch: int, size: int = 16):

@@ -29,12 +29,7 @@ RUN_ARGS = ("--max_train_steps", "12", "--checkpointing_steps", "4", "--checkpoi
             "--per_device_train_batch_size", "2", "--gradient_accumulation_steps", "2", "--eval_every_n_steps", "5")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
