@@ -414,7 +414,7 @@ class Trainer:
         for i, batch in enumerate(micro_batches):
             sync = contextlib.nullcontext() if i == ga - 1 else self.accelerator.no_sync(self.ddp_model)
             with sync:
-                loss = self.ddp_model(**batch).loss / ga
+                loss = self.ddp_model(**batch, return_logits=False).loss / ga
                 if inject:
                     loss = loss * float("nan")
                 self.accelerator.backward(loss)
@@ -465,7 +465,7 @@ class Trainer:
                 break
             batch = self.model_inputs(collator(items), self.val_columns, self.args.val_data_dir)
             with self.accelerator.autocast():
-                out = model(**batch)
+                out = model(**batch, return_logits=False)
             n = len(items)
             totals += torch.stack([out.loss.double() * n, torch.as_tensor(out.acc).double().to(self.device) * n,
                                    torch.tensor(n, dtype=torch.float64, device=self.device)])

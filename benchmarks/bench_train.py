@@ -2,6 +2,7 @@
 
     python benchmarks/bench_train.py                       # 8 layers, d_model 256, T 16, 16x16, batch 2, fp32, CPU
     python benchmarks/bench_train.py --mixed_precision compare  # fp32 vs CPU bf16 autocast (avx512_bf16 / AMX)
+    python benchmarks/bench_train.py --readout compare          # logits of every token vs of the masked ones only
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
 
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
@@ -39,6 +40,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="bf16 autocast (CUDA, or CPUs with native bf16 such as avx512_bf16); compare: fp32, then "
                         "bf16 with torch's fused attention kernel, then bf16 with the written-out CPU path for the "
                         "temporal attention, each on a fresh model, with the ratios.")
+    p.add_argument("--readout", default="masked", choices=("masked", "full", "compare"),
+                   help="masked: the loss reads out only the masked tokens it counts (what train.py does); full: "
+                        "logits of every token, as published; compare: full, then masked, with the ratio.")
     p.add_argument("--compile", action="store_true", help="torch.compile the model.")
     p.add_argument("--num_threads", type=int, default=None,
                    help="torch CPU threads (default: torch's choice, one per core); use 1 on a shared machine.")
@@ -46,13 +50,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def make_step(model, optimizer, collate, windows, device, mixed_precision):
+def make_step(model, optimizer, collate, windows, device, mixed_precision, full_readout: bool = False):
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=mixed_precision == "bf16")
 
     def step():
         batch = collate(windows)
         with autocast:
-            loss = model(input_ids=batch["input_ids"].to(device), labels=batch["labels"].to(device)).loss
+            loss = model(input_ids=batch["input_ids"].to(device), labels=batch["labels"].to(device),
+                         return_logits=full_readout).loss
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         optimizer.step()
@@ -77,12 +82,13 @@ def build(args, device):
     return config, model, optimizer, windows
 
 
-def measure(args, device, mixed_precision: str, math_path: bool) -> float:
+def measure(args, device, mixed_precision: str, math_path: bool, full_readout: bool = False) -> float:
     """Seconds per optimizer step (wall) of a freshly built model; prints one line."""
     SelfAttention.cpu_bf16_math_path = math_path
     config, model, optimizer, windows = build(args, device)
     compiled = torch.compile(model) if args.compile else model
-    step = make_step(compiled, optimizer, get_maskgit_collator(config, seed=0), windows, device, mixed_precision)
+    step = make_step(compiled, optimizer, get_maskgit_collator(config, seed=0), windows, device, mixed_precision,
+                     full_readout)
     for _ in range(args.warmup_steps):
         step()
     t0, cpu0 = time.perf_counter(), time.process_time()
@@ -93,7 +99,8 @@ def measure(args, device, mixed_precision: str, math_path: bool) -> float:
     tokens_per_s = args.batch_size * config.T * config.S / seconds
     label = "fp32" if mixed_precision == "no" else "bf16" if device.type != "cpu" else \
         f"bf16 ({'written-out temporal' if math_path else 'fused'} attention)"
-    print(f"{label:>30}: {seconds:.3f} s/step (process CPU time {cpu_seconds:.3f} s/step), "
+    label += ", all logits" if full_readout else ""
+    print(f"{label:>42}: {seconds:.3f} s/step (process CPU time {cpu_seconds:.3f} s/step), "
           f"{tokens_per_s:,.0f} tokens/s, {tokens_per_s / PUBLISHED_TOKENS_PER_S:.2f}x the published "
           f"{PUBLISHED_TOKENS_PER_S:,.0f} tokens/s", flush=True)
     if args.profile:
@@ -105,14 +112,21 @@ def measure(args, device, mixed_precision: str, math_path: bool) -> float:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
+    if args.readout == "compare" and args.mixed_precision == "compare":
+        raise SystemExit("bench_train.py: compare one thing at a time (--readout compare or --mixed_precision compare)")
     device = torch.device(args.device)
     if args.num_threads is not None:
         torch.set_num_threads(args.num_threads)
     params = sum(p.numel() for p in build(args, device)[1].parameters())
     print(f"STMaskGIT {args.num_layers} layers, d_model {args.d_model}, T {args.T}, {args.s}x{args.s}, "
           f"{params / 1e6:.1f} M params, batch {args.batch_size}, {device.type}, threads {torch.get_num_threads()}")
+    if args.readout == "compare":
+        full = measure(args, device, args.mixed_precision, math_path=True, full_readout=True)
+        masked = measure(args, device, args.mixed_precision, math_path=True)
+        print(f"masked-token readout vs all logits: {full / masked:.2f}x")
+        return
     if args.mixed_precision != "compare":
-        measure(args, device, args.mixed_precision, math_path=True)
+        measure(args, device, args.mixed_precision, math_path=True, full_readout=args.readout == "full")
         return
     fp32 = measure(args, device, "no", math_path=True)
     runs = {"fused": measure(args, device, "bf16", math_path=False),

@@ -66,7 +66,8 @@ class FactorizedEmbedding(nn.Module):
 class STMaskGITOutput:
     loss: torch.Tensor  # factored CE summed over factors, mean over the masked tokens of frames 1..T-1
     acc: torch.Tensor  # argmax accuracy (all factors right) over the same tokens
-    logits: torch.Tensor  # (B, F*V, T, H, W); channel f*V + v is factor f, value v
+    logits: Optional[torch.Tensor]  # (B, F*V, T, H, W), channel f*V + v is factor f, value v; None
+    # when forward was called with return_logits=False
 
 
 class STMaskGIT(nn.Module, PyTorchModelHubMixin):
@@ -168,12 +169,16 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         return rearrange(self._readout(x_BTSC), "B T (H W) C -> B C T H W", H=self.h)
 
     def forward(self, input_ids: torch.Tensor, labels: torch.Tensor, actions: Optional[torch.Tensor] = None,
-                latent_actions: Optional[torch.Tensor] = None, **kwargs) -> STMaskGITOutput:
+                latent_actions: Optional[torch.Tensor] = None, return_logits: bool = True,
+                **kwargs) -> STMaskGITOutput:
         """input_ids, labels: (B, T*H*W) flattened token ids; input_ids hold the mask token where corrupted.
 
         actions (B, T, D), latent_actions (B, T): the model's action inputs (all rows known, as in training), used
         when the config enables them; a video-only model ignores them, like the other batch entries
         (attention_mask, ...).
+        return_logits=False (training): read out only the masked tokens the loss counts, skipping the (F*V)-wide
+        logits of every other token (most of a small model's step), and return logits=None; loss and acc are the
+        same.
         """
         S = self.config.S
         if input_ids.dim() != 2 or input_ids.shape[1] % S or input_ids.shape != labels.shape:
@@ -183,6 +188,8 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         labels_BTHW = rearrange(labels, "B (T H W) -> B T H W", H=self.h, W=self.w)
         if self.action_cond is None:
             actions = latent_actions = None
+        if not return_logits:
+            return self._masked_loss(x_BTHW, labels_BTHW, actions, latent_actions)
         logits_BCTHW = self.compute_logits(x_BTHW, actions, latent_actions)
 
         # frame 0 is always given; only the masked tokens of frames 1.. count
@@ -195,6 +202,23 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         loss = (loss_BTHW * relevant_BTHW).sum() / num_relevant
         acc = (correct_BTHW & relevant_BTHW).sum().float() / num_relevant
         return STMaskGITOutput(loss=loss, acc=acc, logits=logits_BCTHW)
+
+    def _masked_loss(self, x_BTHW: torch.Tensor, labels_BTHW: torch.Tensor, actions: Optional[torch.Tensor],
+                     latent_actions: Optional[torch.Tensor]) -> STMaskGITOutput:
+        """forward's loss and acc with the readout applied only to the masked tokens of frames 1.. (logits=None)."""
+        self._check_tokens(x_BTHW)
+        B, T = x_BTHW.shape[:2]
+        cond_BTC = self.action_embeds(B, T, actions, latent_actions)
+        x_BTSC = self.decoder(self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), 0, cond_BTC))
+        relevant_BTS = rearrange(x_BTHW == self.mask_token_id, "B T H W -> B T (H W)")
+        relevant_BTS[:, 0] = False
+        logits_NC = self._readout(x_BTSC[relevant_BTS])
+        factored_NVF = rearrange(logits_NC, "N (F V) -> N V F", F=self.config.num_factored_vocabs)
+        targets_N = rearrange(labels_BTHW, "B T H W -> B T (H W)")[relevant_BTS]
+        num_relevant = max(targets_N.numel(), 1)
+        loss = factored_cross_entropy(factored_NVF, targets_N).sum() / num_relevant
+        acc = factored_argmax_correct(factored_NVF, targets_N).sum().float() / num_relevant
+        return STMaskGITOutput(loss=loss, acc=acc, logits=None)
 
     # ---------------------------------------------------------------- cached inference
     def new_kv_cache(self, capacity: int) -> TemporalKVCache:

@@ -21,3 +21,11 @@ def test_bench_train_compare_runs_fp32_and_both_bf16_attention_paths(capsys):
     assert "fp32:" in out and "bf16 (fused attention):" in out and "bf16 (written-out temporal attention):" in out
     assert "bf16 (written-out temporal attention) vs fp32:" in out
     assert SelfAttention.cpu_bf16_math_path  # left on for the rest of the process
+
+
+def test_bench_train_readout_compare_runs_both_readouts(capsys):
+    load("bench_train").main(["--num_layers", "1", "--d_model", "32", "--num_heads", "2", "--s", "4", "--T", "10",
+                              "--image_vocab_size", "4096", "--steps", "1", "--warmup_steps", "0",
+                              "--readout", "compare"])
+    out = capsys.readouterr().out
+    assert "fp32, all logits:" in out and "masked-token readout vs all logits:" in out

@@ -199,6 +199,49 @@ def test_loss_is_factored_ce_over_masked_tokens_of_later_frames():
     assert model.pos_embed_TSC.grad is not None
 
 
+@pytest.mark.parametrize("uses_actions", [False, True])
+def test_masked_only_readout_gives_same_loss_acc_and_gradients(uses_actions):
+    """return_logits=False (the training path) reads out only the counted tokens: same loss, acc and gradients."""
+    extra = dict(num_latent_actions=3, action_dropout=0.0) if uses_actions else {}
+    config = tiny_config(**extra)
+    model = STMaskGIT(config)
+    model.init_weights()
+    with torch.no_grad():
+        model.out_x_proj.weight.normal_(0, 1.0)
+    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    g = torch.Generator().manual_seed(5)
+    masked = torch.rand(labels.shape, generator=g) < 0.5
+    masked[:, 0, 0, 0] = True  # a masked token in frame 0, which must not count
+    inputs = labels.masked_fill(masked, config.mask_token_id)
+    kwargs = dict(latent_actions=torch.randint(0, 3, (2, 4), generator=g)) if uses_actions else {}
+
+    grads = []
+    outs = []
+    for return_logits in (True, False):
+        model.zero_grad()
+        out = model(inputs.flatten(1), labels.flatten(1), return_logits=return_logits, **kwargs)
+        out.loss.backward()
+        outs.append(out)
+        grads.append({n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
+    full, masked_only = outs
+    assert masked_only.logits is None and full.logits is not None
+    torch.testing.assert_close(masked_only.loss, full.loss)
+    torch.testing.assert_close(masked_only.acc, full.acc)
+    assert grads[0].keys() == grads[1].keys() and grads[0]["out_x_proj.weight"].abs().sum() > 0
+    for name in grads[0]:
+        torch.testing.assert_close(grads[1][name], grads[0][name], atol=1e-6, rtol=1e-5)
+
+
+def test_masked_only_readout_without_masked_tokens_is_zero_loss():
+    config = tiny_config()
+    model = STMaskGIT(config)
+    model.init_weights()
+    labels = random_tokens(config, B=1, T=4, mask_rate=0.0)
+    out = model(labels.flatten(1), labels.flatten(1), return_logits=False)
+    assert out.loss.item() == 0.0 and out.acc.item() == 0.0
+    out.loss.backward()  # no counted token: still a valid (zero) graph
+
+
 def test_init_weights():
     model = STMaskGIT(tiny_config(d_model=64, num_heads=4))
     model.init_weights()
