@@ -317,7 +317,8 @@ class Trainer:
         self.tokens_per_step = B * ga * self.world * config.T * config.S
 
         self.model = build_model(config, args.warmstart_path).to(self.device)
-        self.optimizer = build_optimizer(self.model, args, fused=self.device.type == "cuda")
+        # torch's fused AdamW kernel exists for CUDA and CPU (~15x faster than the per-tensor loop on CPU)
+        self.optimizer = build_optimizer(self.model, args, fused=self.device.type in ("cuda", "cpu"))
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer, lr_multiplier(args.lr_scheduler_type, args.num_warmup_steps, self.max_steps))
         self.step = 0
