@@ -5,6 +5,12 @@
 Token accuracy: predict frame t as a copy of ground-truth frame t-1. CE: the best smoothed copy, which puts
 probability p on each factor of the previous frame's token and spreads 1-p uniformly over the other V-1 values;
 the CE-optimal p is the factor match rate, fit on the training split and applied to the validation windows.
+
+Previous-token lookup (a diagnostic of the accuracy metric): from the training pairs, predict the token that most
+often followed the same token at the same position one window frame earlier (`lookup_acc`), or each factor's most
+frequent value after it (`factored_lookup_acc`: what greedy sampling of factorized logits does when all a model
+knows is that previous token); tokens never seen in training are copied. When the factor-wise choice scores
+below copying, a factorized model needs more than the previous token at its position to beat the copy baseline.
 The last stdout line is a JSON object.
 """
 import argparse
@@ -50,6 +56,44 @@ def copy_baseline(dataset: RawTokenDataset, p: float, num_factors: int, factor_s
     return {"copy_acc": acc_sum / n, "smoothed_copy_loss": ce_sum / n, "p": p, "num_tokens": n}
 
 
+def token_pairs(dataset: RawTokenDataset, max_windows: int = None):
+    """All (prev, next) token ids of consecutive window frames at the same position: two (N,) int64 arrays."""
+    pairs = [(prev.flatten(), nxt.flatten()) for prev, nxt in frame_pairs(dataset, max_windows)]
+    if not pairs:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return (torch.cat([p for p, _ in pairs]).numpy().astype(np.int64),
+            torch.cat([n for _, n in pairs]).numpy().astype(np.int64))
+
+
+def most_frequent_successor(prev_N: np.ndarray, next_N: np.ndarray) -> dict:
+    """{prev value: the next value seen most often after it} (ties: the smallest next value)."""
+    if len(prev_N) == 0:
+        return {}
+    pairs_N2, counts = np.unique(np.stack([prev_N, next_N], 1), axis=0, return_counts=True)
+    order = np.lexsort((pairs_N2[:, 1], -counts, pairs_N2[:, 0]))  # by prev, then count desc, then next asc
+    pairs_N2 = pairs_N2[order]
+    first = np.r_[True, pairs_N2[1:, 0] != pairs_N2[:-1, 0]]
+    return dict(zip(pairs_N2[first, 0].tolist(), pairs_N2[first, 1].tolist()))
+
+
+def lookup_baselines(train: RawTokenDataset, val: RawTokenDataset, num_factors: int, factor_size: int,
+                     max_train_windows: int = None, max_windows: int = None) -> dict:
+    """Accuracy of the previous-token lookup on val, joint and factor-wise (see the module docstring)."""
+    prev_tr, next_tr = token_pairs(train, max_train_windows)
+    prev_va, next_va = token_pairs(val, max_windows)
+    joint = most_frequent_successor(prev_tr, next_tr)
+    pred_joint = np.array([joint.get(t, t) for t in prev_va.tolist()], dtype=np.int64)
+    pred_factored = np.zeros_like(prev_va)
+    for k in range(num_factors):
+        scale = factor_size ** k
+        table = most_frequent_successor(prev_tr, next_tr // scale % factor_size)
+        value = np.array([table.get(t, t // scale % factor_size) for t in prev_va.tolist()], dtype=np.int64)
+        pred_factored += value * scale
+    n = max(len(next_va), 1)
+    return {"lookup_acc": float((pred_joint == next_va).sum() / n),
+            "factored_lookup_acc": float((pred_factored == next_va).sum() / n)}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--train_data_dir", default="data/sample/train", help="split used to fit p")
@@ -58,7 +102,7 @@ def main(argv=None):
     parser.add_argument("--stride", type=int, default=15, help="frames between consecutive window frames")
     parser.add_argument("--num_factored_vocabs", type=int, default=2, help="factors per token id")
     parser.add_argument("--max_train_windows", type=int, default=2000,
-                        help="training windows (non-overlapping) used to fit p")
+                        help="training windows (non-overlapping) used to fit p and the lookup tables")
     parser.add_argument("--max_examples", type=int, default=None, help="validation windows to use (default: all)")
     args = parser.parse_args(argv)
 
@@ -67,6 +111,8 @@ def main(argv=None):
     factor_size = round(val.vocab_size ** (1 / args.num_factored_vocabs))
     p = factor_match_rate(train, args.num_factored_vocabs, factor_size, args.max_train_windows)
     result = copy_baseline(val, p, args.num_factored_vocabs, factor_size, args.max_examples)
+    result.update(lookup_baselines(train, val, args.num_factored_vocabs, factor_size, args.max_train_windows,
+                                   args.max_examples))
     result["num_examples"] = min(len(val), args.max_examples or len(val))
     print(json.dumps(result))
 

@@ -5,7 +5,7 @@ import math
 import numpy as np
 
 from data import RawTokenDataset, write_token_dataset
-from genie.baselines import copy_baseline, factor_match_rate, main
+from genie.baselines import copy_baseline, factor_match_rate, lookup_baselines, main
 
 
 def _dataset(path, frames_NHW):
@@ -47,5 +47,35 @@ def test_cli_prints_json(tmp_path, capsys):
     main(["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "v"), "--window_size", "3",
           "--stride", "1"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert set(out) >= {"copy_acc", "smoothed_copy_loss", "p", "num_examples"}
+    assert set(out) >= {"copy_acc", "smoothed_copy_loss", "p", "num_examples", "lookup_acc", "factored_lookup_acc"}
     assert 0 <= out["copy_acc"] <= 1
+
+
+def test_lookup_baselines_pick_joint_and_factorwise_successors(tmp_path):
+    # Windows of 2 frames of one token (vocab 16 = 4 x 4, t = f0 + 4 f1); each window is one (prev -> next) pair.
+    # After token 0 came 0, 0, 5, 9, 13: the joint lookup predicts 0 (2 of 5), but factor by factor the most
+    # frequent values are f0 = 1 (5, 9, 13) and f1 = 0 (0, 0), i.e. token 1, which never followed 0.
+    # Token 3 was followed by 7 once. Unseen tokens are copied.
+    train_pairs = [(0, 0), (0, 0), (0, 5), (0, 9), (0, 13), (3, 7)]
+    val_pairs = [(0, 0), (0, 1), (3, 7), (3, 3), (8, 8), (8, 2)]
+
+    def windows(pairs):
+        return np.array(pairs).reshape(-1, 1, 1)
+
+    train = RawTokenDataset(_write(tmp_path / "t", windows(train_pairs)), window_size=2, stride=1,
+                            filter_overlaps=True)
+    val = RawTokenDataset(_write(tmp_path / "v", windows(val_pairs)), window_size=2, stride=1, filter_overlaps=True)
+    res = lookup_baselines(train, val, 2, 4)
+    # joint predictions 0, 0, 7, 7, 8, 8: right on (0,0), (3,7), (8,8);
+    # factor-wise predictions 1, 1, 7, 7, 8, 8: right on (0,1), (3,7), (8,8)
+    assert math.isclose(res["lookup_acc"], 3 / 6)
+    assert math.isclose(res["factored_lookup_acc"], 3 / 6)
+    val2 = RawTokenDataset(_write(tmp_path / "v2", windows([(0, 0), (0, 0), (0, 1)])), window_size=2, stride=1,
+                           filter_overlaps=True)
+    res2 = lookup_baselines(train, val2, 2, 4)
+    assert math.isclose(res2["lookup_acc"], 2 / 3) and math.isclose(res2["factored_lookup_acc"], 1 / 3)
+
+
+def _write(path, frames_NHW):
+    write_token_dataset(path, frames_NHW, metadata={"vocab_size": 16, "hz": 35})
+    return path
