@@ -13,11 +13,17 @@ def _uniform(low: float, high: float, size, generator) -> torch.Tensor:
 
 
 def _whole_frame_masks(n: int, T: int, H: int, W: int, generator) -> torch.Tensor:
-    """(n, T, H, W) bool: each frame 1..T-1 fully masked with probability 1/2, at least one per example."""
-    masked_nT = torch.rand(n, T, generator=generator) < 0.5
-    masked_nT[:, 0] = False
-    none = ~masked_nT.any(dim=1)
-    masked_nT[none, torch.randint(1, T, (int(none.sum()),), generator=generator)] = True
+    """(n, T, H, W) bool: every 2nd or every 3rd frame fully masked (random per example), from a random start.
+
+    Every masked frame then follows a clean one, as every target does in the challenge's evaluation, and with
+    period 3 it follows two, so the model also learns from the change between the last two frames (whether a token
+    has just stayed put), which the evaluation always shows it. Independent coin flips per frame give fewer such
+    targets and train two-step predictions (a masked frame after a masked one) that the evaluation never asks for.
+    """
+    period_n1 = 2 + torch.randint(0, 2, (n, 1), generator=generator)
+    first_n1 = 1 + (torch.rand(n, 1, generator=generator) * period_n1).long().clamp(max=T - 2)
+    t_1T = torch.arange(T).unsqueeze(0)
+    masked_nT = (t_1T >= first_n1) & ((t_1T - first_n1) % period_n1 == 0)
     return masked_nT[:, :, None, None].expand(n, T, H, W)
 
 
@@ -34,10 +40,10 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
     3. each frame >= first_masked_frame of each example masks each token with probability cosine_schedule(U(0, 1))
        (redrawn when the whole batch got no mask); masked tokens become config.mask_token_id. Frame 0 is never masked.
     4. opt-in (config.teacher_forced_ratio > 0, not in the published recipe): that fraction of the examples is
-       instead masked the way the challenge evaluates: each frame >= 1 is fully masked with probability 1/2 (at
-       least one is), the others keep their tokens with step 1's light corruption only (not step 2's). A masked frame
-       after a kept one is then predicted from whole earlier frames, nothing of itself revealed, which the published
-       masking rarely shows a model (its frames are partly masked, and the frames before them too).
+       instead masked the way the challenge evaluates: every 2nd or 3rd frame is fully masked (`_whole_frame_masks`),
+       the others keep their tokens with step 1's light corruption only (not step 2's). Each masked frame is then
+       predicted from whole earlier frames, nothing of itself revealed, which the published masking rarely shows a
+       model (its frames are partly masked, and the frames before them too).
 
     seed: None draws from torch's global RNG (seeded per DataLoader worker and by accelerate's set_seed); an int
     uses a private generator, seeded with seed + worker id inside DataLoader workers, so results are reproducible.

@@ -148,6 +148,7 @@ def test_with_dataset_and_dataloader(tmp_path):
 def test_teacher_forced_examples_mask_whole_frames_over_clean_context(non_mlm_ratio):
     config = tiny_config(teacher_forced_ratio=1.0, max_corrupt_rate=0.0, non_mlm_ratio=non_mlm_ratio)
     collate = get_maskgit_collator(config, seed=0)
+    first_targets = set()
     for step in range(20):
         batch = collate(make_features(4, seed=step))
         x, labels = frames(batch["input_ids"]), frames(batch["labels"])
@@ -155,8 +156,15 @@ def test_teacher_forced_examples_mask_whole_frames_over_clean_context(non_mlm_ra
         per_frame = masked.sum(-1)
         assert ((per_frame == 0) | (per_frame == S)).all(), "a frame is either fully masked or not at all"
         assert (per_frame[:, 0] == 0).all() and (per_frame[:, 1:] > 0).any(dim=1).all()
+        whole = per_frame == S
+        assert not (whole[:, 1:] & whole[:, :-1]).any(), "a masked frame always follows a clean one"
+        assert (whole.sum(1) >= (config.T - 1) // 3).all(), "every 2nd or 3rd frame is a target"
+        gaps = {int(g) for row in whole for g in torch.diff(torch.nonzero(row).flatten())}
+        assert gaps <= {2, 3}
+        first_targets |= set(whole.float().argmax(1).tolist())
         # kept frames are clean even when the batch drew the non-MLM corruption of later frames
         assert torch.equal(x[~masked], labels[~masked])
+    assert first_targets == {1, 2, 3}  # every phase occurs
 
 
 def test_teacher_forced_ratio_mixes_in_published_masking():
