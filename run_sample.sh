@@ -18,9 +18,9 @@ VAL=$SAMPLE_DIR/val
 [ -f "$TRAIN/metadata.json" ] || { echo "run_sample.sh: $TRAIN is missing; run ./build.sh first" >&2; exit 1; }
 
 "$PY" train.py --genie_config "$GENIE_CONFIG" --train_data_dir "$TRAIN" --val_data_dir "$VAL" \
-  --output_dir "$OUT" --per_device_train_batch_size 4 --learning_rate 1e-2 --lr_scheduler_type cosine \
-  --num_warmup_steps 60 --max_train_steps 800 --weight_decay 0.05 --eval_every_n_steps 400 --max_eval_steps 16 \
-  --checkpointing_steps 400 --resume_from_checkpoint latest "$@"
+  --output_dir "$OUT" --per_device_train_batch_size 2 --learning_rate 1e-2 --lr_scheduler_type cosine \
+  --num_warmup_steps 120 --max_train_steps 1600 --weight_decay 0.05 --eval_every_n_steps 800 --max_eval_steps 16 \
+  --checkpointing_steps 800 --resume_from_checkpoint latest "$@"
 
 "$PY" genie/generate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --output_dir "$OUT/generated" \
   --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --example_stride "${EXAMPLE_STRIDE:-2500}" --maskgit_steps 2 --temperature 0
