@@ -42,9 +42,11 @@ class VQConfig:
                 raise ConfigError(f"VQConfig.{name} must be a positive int, got {getattr(self, name)!r}")
         if not self.ch_mult or any(not isinstance(m, int) or m <= 0 for m in self.ch_mult):
             raise ConfigError(f"VQConfig.ch_mult must be a non-empty list of positive ints, got {self.ch_mult!r}")
-        if self.codebook_size != 2 ** self.z_channels:
-            raise ConfigError(f"VQConfig: codebook_size {self.codebook_size} != 2 ** z_channels "
-                              f"({2 ** self.z_channels}); lookup-free quantization has one bit per latent channel")
+        # compared by bits: 2 ** z_channels of a corrupted, huge z_channels would never finish computing
+        size = self.codebook_size
+        if not isinstance(size, int) or size <= 0 or size & (size - 1) or size.bit_length() - 1 != self.z_channels:
+            raise ConfigError(f"VQConfig: codebook_size {size!r} != 2 ** z_channels (z_channels = "
+                              f"{self.z_channels}); lookup-free quantization has one bit per latent channel")
         bad_widths = [self.base_channels * m for m in self.ch_mult if (self.base_channels * m) % 32]
         if bad_widths:
             raise ConfigError(f"VQConfig: every level width base_channels * ch_mult[i] must be divisible by 32 "

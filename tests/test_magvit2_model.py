@@ -45,6 +45,10 @@ def test_config_rejects_bad_values():
         VQConfig.from_dict({"z_channel": 18}, source="cfg.json")
     with pytest.raises(ConfigError, match="codebook_size"):
         VQConfig(z_channels=10)
+    with pytest.raises(ConfigError, match="codebook_size"):  # rejected without computing 2 ** z_channels
+        VQConfig(z_channels=2 ** 70)
+    with pytest.raises(ConfigError, match="codebook_size"):
+        VQConfig(codebook_size=2 ** 18 + 1)
     with pytest.raises(ConfigError, match="divisible by 32"):
         VQConfig(base_channels=16)
     with pytest.raises(ValueError, match="divisible"):
