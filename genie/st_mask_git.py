@@ -165,8 +165,11 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
 
     def _full_logits(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None) -> torch.Tensor:
         """compute_logits without input checks, with precomputed action embeddings (B, T, C) or None."""
-        x_BTSC = self.decoder(self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), 0, cond_BTC))
-        return rearrange(self._readout(x_BTSC), "B T (H W) C -> B C T H W", H=self.h)
+        return rearrange(self._readout(self._decode(x_BTHW, cond_BTC)), "B T (H W) C -> B C T H W", H=self.h)
+
+    def _decode(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor]) -> torch.Tensor:
+        """Frames 0..T-1 (B, T, H, W) through the decoder -> final hidden states (B, T, S, C), before the readout."""
+        return self.decoder(self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), 0, cond_BTC))
 
     def forward(self, input_ids: torch.Tensor, labels: torch.Tensor, actions: Optional[torch.Tensor] = None,
                 latent_actions: Optional[torch.Tensor] = None, return_logits: bool = True,
@@ -208,8 +211,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         """forward's loss and acc with the readout applied only to the masked tokens of frames 1.. (logits=None)."""
         self._check_tokens(x_BTHW)
         B, T = x_BTHW.shape[:2]
-        cond_BTC = self.action_embeds(B, T, actions, latent_actions)
-        x_BTSC = self.decoder(self._embed(rearrange(x_BTHW, "B T H W -> B T (H W)"), 0, cond_BTC))
+        x_BTSC = self._decode(x_BTHW, self.action_embeds(B, T, actions, latent_actions))
         relevant_BTS = rearrange(x_BTHW == self.mask_token_id, "B T H W -> B T (H W)")
         relevant_BTS[:, 0] = False
         logits_NC = self._readout(x_BTSC[relevant_BTS])

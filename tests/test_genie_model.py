@@ -174,12 +174,18 @@ def test_mup_scales_attention_and_readout(tmp_path):
         assert not torch.allclose(plain.compute_logits(x), logits, atol=1e-2)
 
 
-def test_loss_is_factored_ce_over_masked_tokens_of_later_frames():
-    config = tiny_config()
+def sharp_readout_model(config: GenieConfig) -> STMaskGIT:
+    """A freshly initialised model whose readout is large enough that argmax and CE differ between tokens."""
     model = STMaskGIT(config)
     model.init_weights()
     with torch.no_grad():
         model.out_x_proj.weight.normal_(0, 1.0)
+    return model
+
+
+def test_loss_is_factored_ce_over_masked_tokens_of_later_frames():
+    config = tiny_config()
+    model = sharp_readout_model(config)
     labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
     g = torch.Generator().manual_seed(3)
     inputs = labels.masked_fill(torch.rand(labels.shape, generator=g) < 0.5, config.mask_token_id)
@@ -204,10 +210,7 @@ def test_masked_only_readout_gives_same_loss_acc_and_gradients(uses_actions):
     """return_logits=False (the training path) reads out only the counted tokens: same loss, acc and gradients."""
     extra = dict(num_latent_actions=3, action_dropout=0.0) if uses_actions else {}
     config = tiny_config(**extra)
-    model = STMaskGIT(config)
-    model.init_weights()
-    with torch.no_grad():
-        model.out_x_proj.weight.normal_(0, 1.0)
+    model = sharp_readout_model(config)
     labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
     g = torch.Generator().manual_seed(5)
     masked = torch.rand(labels.shape, generator=g) < 0.5
