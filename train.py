@@ -399,8 +399,9 @@ class Trainer:
                                  self.args.train_data_dir)
 
     def model_inputs(self, batch: dict, columns, data_dir) -> dict:
-        """The collated batch's input_ids, labels and (for action-conditioned models) actions, on the device."""
-        inputs = {k: batch[k] for k in ("input_ids", "labels")}
+        """The collated batch's input_ids, labels, target_ids (two-stream batches) and (for action-conditioned
+        models) actions, on the device."""
+        inputs = {k: batch[k] for k in ("input_ids", "labels", "target_ids") if k in batch}
         if self.config.uses_actions:
             inputs["actions"], inputs["latent_actions"] = split_actions(
                 batch.get("actions"), columns, self.config.num_latent_actions, f"{data_dir}/actions")

@@ -27,8 +27,21 @@ def _whole_frame_masks(n: int, T: int, H: int, W: int, generator) -> torch.Tenso
     return masked_nT[:, :, None, None].expand(n, T, H, W)
 
 
+def _two_stream_target_masks(B: int, T: int, H: int, W: int, partial_ratio: float, generator) -> torch.Tensor:
+    """(B, T, H, W) bool: every frame >= 1 a target, whole (MaskGIT's first step) or, with probability
+    partial_ratio, each token masked with a cosine-schedule rate (its later steps); frame 0 never masked."""
+    rate_BT11 = cosine_schedule(torch.rand(B, T, 1, 1, generator=generator))
+    partial_BT11 = torch.rand(B, T, 1, 1, generator=generator) < partial_ratio
+    mask_BTHW = torch.rand(B, T, H, W, generator=generator) < torch.where(partial_BT11, rate_BT11, 1.0)
+    empty_BT = ~mask_BTHW.flatten(2).any(-1)
+    mask_BTHW[empty_BT] = True  # a target with nothing masked would give no signal: mask it whole instead
+    mask_BTHW[:, 0] = False
+    return mask_BTHW
+
+
 def get_maskgit_collator(config: GenieConfig, seed=None):
-    """Return collate_fn(features) -> {"input_ids": (B, T*S), "labels": (B, T*S)} int64 (+ "actions" (B, T, D)).
+    """Return collate_fn(features) -> {"input_ids": (B, T*S), "labels": (B, T*S)} int64 (+ "actions" (B, T, D),
+    + "target_ids" (B, T*S) for two-stream batches).
 
     features: items of RawTokenDataset (input_ids (T*S,) int64, optional actions (T, D)). labels are the clean
     tokens. input_ids are corrupted as in training of the published models:
@@ -44,6 +57,10 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
        the others keep their tokens with step 1's light corruption only (not step 2's). Each masked frame is then
        predicted from whole earlier frames, nothing of itself revealed, which the published masking rarely shows a
        model (its frames are partly masked, and the frames before them too).
+    5. opt-in (config.two_stream_ratio > 0): that fraction of the batches is instead two-stream: input_ids are the
+       whole windows with step 1's light corruption (the context) and an extra "target_ids" (B, T*S) holds every
+       frame t >= 1 as a target, fully masked or, for config.two_stream_partial_ratio of them, partly
+       (`_two_stream_target_masks`); STMaskGIT.forward predicts target t from context frames < t.
 
     seed: None draws from torch's global RNG (seeded per DataLoader worker and by accelerate's set_seed); an int
     uses a private generator, seeded with seed + worker id inside DataLoader workers, so results are reproducible.
@@ -77,6 +94,14 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
         corrupt_rate = config.max_corrupt_rate * torch.rand((), generator=g)
         corrupt = torch.rand(x_BTHWF.shape, generator=g) < corrupt_rate
         x_BTHWF = torch.where(corrupt, random_BTHWF, x_BTHWF)
+        if config.two_stream_ratio > 0 and torch.rand((), generator=g) < config.two_stream_ratio:
+            context_BTHW = unfactorize_token_ids(x_BTHWF, F, V)
+            targets_BTHW = context_BTHW.clone()
+            targets_BTHW[_two_stream_target_masks(B, T, H, W, config.two_stream_partial_ratio, g)] = \
+                config.mask_token_id
+            batch = {"input_ids": rearrange(context_BTHW, "b t h w -> b (t h w)"),
+                     "target_ids": rearrange(targets_BTHW, "b t h w -> b (t h w)")}
+            return _with_labels_and_actions(batch, labels_BTHW, features)
         lightly_corrupted_BTHWF = x_BTHWF.clone() if config.teacher_forced_ratio > 0 else None
 
         if torch.rand((), generator=g) < config.non_mlm_ratio:
@@ -103,13 +128,17 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
             mask_BTHW[forced_B] = _whole_frame_masks(int(forced_B.sum()), T, H, W, g)
         x_BTHW = unfactorize_token_ids(x_BTHWF, F, V)
         x_BTHW[mask_BTHW] = config.mask_token_id
-        batch = {"input_ids": rearrange(x_BTHW, "b t h w -> b (t h w)"),
-                 "labels": rearrange(labels_BTHW, "b t h w -> b (t h w)")}
-        has_actions = ["actions" in ex for ex in features]
-        if any(has_actions):
-            if not all(has_actions):
-                raise ValueError("maskgit collator: some examples have actions and some do not")
-            batch["actions"] = torch.stack([torch.as_tensor(ex["actions"], dtype=torch.float32) for ex in features])
-        return batch
+        return _with_labels_and_actions({"input_ids": rearrange(x_BTHW, "b t h w -> b (t h w)")}, labels_BTHW,
+                                        features)
 
     return collate_fn
+
+
+def _with_labels_and_actions(batch: dict, labels_BTHW: torch.Tensor, features) -> dict:
+    batch["labels"] = rearrange(labels_BTHW, "b t h w -> b (t h w)")
+    has_actions = ["actions" in ex for ex in features]
+    if any(has_actions):
+        if not all(has_actions):
+            raise ValueError("maskgit collator: some examples have actions and some do not")
+        batch["actions"] = torch.stack([torch.as_tensor(ex["actions"], dtype=torch.float32) for ex in features])
+    return batch

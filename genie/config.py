@@ -111,6 +111,17 @@ class GenieConfig:
     # Training examples masked as the challenge evaluates (data.get_maskgit_collator): each frame >= 1 either
     # fully masked or clean, so masked frames are predicted from whole earlier frames (0 = published recipe).
     teacher_forced_ratio: float = 0.0
+    # Two-stream teacher-forced training (STMaskGIT.forward with target_ids): this fraction of the batches keeps
+    # every frame clean as context and predicts every frame t >= 1 from frames < t in a second stream, as
+    # STMaskGIT.teacher_forced and generate infer (0 = published recipe).
+    two_stream_ratio: float = 0.0
+    # Of the two-stream targets, this fraction is partly masked (MaskGIT's cosine rate) instead of whole, so that
+    # MaskGIT's later steps, which see some of the frame's own tokens, are trained too.
+    two_stream_partial_ratio: float = 0.0
+    # Training (STMaskGIT._reveal_own_predictions, the masked-readout loss train.py uses): this fraction of the
+    # examples has part of its masked tokens filled with the model's own greedy guesses, as MaskGIT's later steps
+    # see them at inference, so the model learns how far to trust them (0 = published recipe).
+    self_reveal_ratio: float = 0.0
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -132,8 +143,9 @@ class GenieConfig:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         if not 0.0 <= self.max_corrupt_rate <= 1.0 or not 0.0 <= self.non_mlm_ratio <= 1.0:
             raise ConfigError("GenieConfig: max_corrupt_rate and non_mlm_ratio must be in [0, 1]")
-        if not 0.0 <= self.teacher_forced_ratio <= 1.0:
-            raise ConfigError(f"GenieConfig: teacher_forced_ratio must be in [0, 1], got {self.teacher_forced_ratio}")
+        for name in ("teacher_forced_ratio", "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"GenieConfig: {name} must be in [0, 1], got {getattr(self, name)}")
         self._check_actions()
 
     def _check_actions(self) -> None:

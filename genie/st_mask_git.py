@@ -26,8 +26,9 @@ from torch import nn
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, load_json
 from genie.evaluation import factored_argmax_correct, factored_cross_entropy
-from genie.factorization import factorize_token_ids
+from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.sampling import maskgit_sample
+from genie.schedule import cosine_schedule
 from genie.st_transformer import STTransformerDecoder, TemporalKVCache
 
 CONFIG_NAME = "config.json"
@@ -173,7 +174,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
 
     def forward(self, input_ids: torch.Tensor, labels: torch.Tensor, actions: Optional[torch.Tensor] = None,
                 latent_actions: Optional[torch.Tensor] = None, return_logits: bool = True,
-                **kwargs) -> STMaskGITOutput:
+                target_ids: Optional[torch.Tensor] = None, **kwargs) -> STMaskGITOutput:
         """input_ids, labels: (B, T*H*W) flattened token ids; input_ids hold the mask token where corrupted.
 
         actions (B, T, D), latent_actions (B, T): the model's action inputs (all rows known, as in training), used
@@ -181,7 +182,11 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         (attention_mask, ...).
         return_logits=False (training): read out only the masked tokens the loss counts, skipping the (F*V)-wide
         logits of every other token (most of a small model's step), and return logits=None; loss and acc are the
-        same.
+        same. In training mode this path also applies config.self_reveal_ratio (`_reveal_own_predictions`).
+        target_ids (B, T*H*W): the two-stream teacher-forced objective (data.get_maskgit_collator with
+        two_stream_ratio): input_ids are then whole context frames (no mask tokens) and frame t >= 1 of target_ids,
+        masked where it is to be predicted, is a target that sees context frames < t and itself only, as in
+        `teacher_forced`; every frame of a window is a target, each with its full history. logits=None.
         """
         S = self.config.S
         if input_ids.dim() != 2 or input_ids.shape[1] % S or input_ids.shape != labels.shape:
@@ -191,6 +196,12 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         labels_BTHW = rearrange(labels, "B (T H W) -> B T H W", H=self.h, W=self.w)
         if self.action_cond is None:
             actions = latent_actions = None
+        if target_ids is not None:
+            if target_ids.shape != input_ids.shape:
+                raise ValueError(f"target_ids must have the shape of input_ids {tuple(input_ids.shape)}, got "
+                                 f"{tuple(target_ids.shape)}")
+            targets_BTHW = rearrange(target_ids, "B (T H W) -> B T H W", H=self.h, W=self.w)
+            return self._two_stream_loss(x_BTHW, targets_BTHW, labels_BTHW, actions, latent_actions)
         if not return_logits:
             return self._masked_loss(x_BTHW, labels_BTHW, actions, latent_actions)
         logits_BCTHW = self.compute_logits(x_BTHW, actions, latent_actions)
@@ -211,12 +222,70 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         """forward's loss and acc with the readout applied only to the masked tokens of frames 1.. (logits=None)."""
         self._check_tokens(x_BTHW)
         B, T = x_BTHW.shape[:2]
-        x_BTSC = self._decode(x_BTHW, self.action_embeds(B, T, actions, latent_actions))
+        cond_BTC = self.action_embeds(B, T, actions, latent_actions)
+        if self.training and self.config.self_reveal_ratio > 0:
+            x_BTHW = self._reveal_own_predictions(x_BTHW, cond_BTC)
+        x_BTSC = self._decode(x_BTHW, cond_BTC)
         relevant_BTS = rearrange(x_BTHW == self.mask_token_id, "B T H W -> B T (H W)")
         relevant_BTS[:, 0] = False
-        logits_NC = self._readout(x_BTSC[relevant_BTS])
-        factored_NVF = rearrange(logits_NC, "N (F V) -> N V F", F=self.config.num_factored_vocabs)
-        targets_N = rearrange(labels_BTHW, "B T H W -> B T (H W)")[relevant_BTS]
+        return self._loss_at(x_BTSC, relevant_BTS, rearrange(labels_BTHW, "B T H W -> B T (H W)"))
+
+    @torch.no_grad()
+    def _reveal_own_predictions(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor]) -> torch.Tensor:
+        """Training inputs (B, T, H, W) as a later MaskGIT step sees them: for config.self_reveal_ratio of the
+        examples, a random share 1 - cos(pi/2 u), u ~ U(0, 1), of each frame's masked tokens is filled with the
+        model's own greedy prediction (one extra pass without gradients).
+
+        At inference the tokens revealed after step 1 are the model's guesses (on the sample world ~11 % of them
+        right), not the ground truth that published masking reveals; a model trained only on ground truth trusts
+        them, and its second step gets worse than its first.
+        """
+        chosen_B = torch.rand(x_BTHW.shape[0], device=x_BTHW.device) < self.config.self_reveal_ratio
+        if not chosen_B.any():
+            return x_BTHW
+        x_bTHW = x_BTHW[chosen_B]
+        masked_bTHW = x_bTHW == self.mask_token_id
+        masked_bTHW[:, 0] = False
+        hidden_NC = self._decode(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B])[
+            rearrange(masked_bTHW, "b T H W -> b T (H W)")]
+        factors_NF = rearrange(self._readout(hidden_NC), "N (F V) -> N F V", F=self.config.num_factored_vocabs
+                               ).argmax(-1)
+        guesses_N = unfactorize_token_ids(factors_NF, self.config.num_factored_vocabs, self.config.factored_vocab_size)
+        share_bT11 = 1 - cosine_schedule(torch.rand(*masked_bTHW.shape[:2], 1, 1, device=x_BTHW.device))
+        reveal_bTHW = masked_bTHW & (torch.rand(masked_bTHW.shape, device=x_BTHW.device) < share_bT11)
+        filled_bTHW = x_bTHW.clone()
+        filled_bTHW[masked_bTHW] = guesses_N
+        x_bTHW = torch.where(reveal_bTHW, filled_bTHW, x_bTHW)
+        x_BTHW = x_BTHW.clone()
+        x_BTHW[chosen_B] = x_bTHW
+        return x_BTHW
+
+    def _two_stream_loss(self, context_BTHW: torch.Tensor, targets_BTHW: torch.Tensor, labels_BTHW: torch.Tensor,
+                         actions: Optional[torch.Tensor], latent_actions: Optional[torch.Tensor]) -> STMaskGITOutput:
+        """Loss and acc of the masked tokens of targets 1..T-1, each over context frames < t (all (B, T, H, W)).
+
+        The same computation as `teacher_forced` (context keys/values once, then all targets in one pass), here
+        with gradients: the cache's buffers are written in place, which autograd records like any slice copy.
+        """
+        self._check_tokens(context_BTHW)
+        self._check_tokens(targets_BTHW)
+        if (context_BTHW == self.mask_token_id).any():
+            raise ValueError("two-stream training: the context frames (input_ids) must not hold mask tokens")
+        B, T = context_BTHW.shape[:2]
+        cond_BTC = self.action_embeds(B, T, actions, latent_actions)
+        kv_cache = self.new_kv_cache(T - 1)
+        self._run_frames(context_BTHW[:, :T - 1], 0, kv_cache, commit=T - 1, readout=False,
+                         cond_BTC=_frames(cond_BTC, 0, T - 1))
+        x_BTSC = self._embed(rearrange(targets_BTHW[:, 1:], "B T H W -> B T (H W)"), 1, _frames(cond_BTC, 1, T))
+        x_BTSC = self.decoder(x_BTSC, kv_cache, targets=True)
+        relevant_BTS = rearrange(targets_BTHW[:, 1:] == self.mask_token_id, "B T H W -> B T (H W)")
+        return self._loss_at(x_BTSC, relevant_BTS, rearrange(labels_BTHW[:, 1:], "B T H W -> B T (H W)"))
+
+    def _loss_at(self, x_BTSC: torch.Tensor, relevant_BTS: torch.Tensor, labels_BTS: torch.Tensor) -> STMaskGITOutput:
+        """Read out the hidden states (B, T, S, C) where relevant (B, T, S) only -> factored CE and acc there."""
+        factored_NVF = rearrange(self._readout(x_BTSC[relevant_BTS]), "N (F V) -> N V F",
+                                 F=self.config.num_factored_vocabs)
+        targets_N = labels_BTS[relevant_BTS]
         num_relevant = max(targets_N.numel(), 1)
         loss = factored_cross_entropy(factored_NVF, targets_N).sum() / num_relevant
         acc = factored_argmax_correct(factored_NVF, targets_N).sum().float() / num_relevant

@@ -177,3 +177,44 @@ def test_teacher_forced_ratio_mixes_in_published_masking():
         whole += int(example_is_whole.sum())
         partial += int((~example_is_whole).sum())
     assert 0.3 < whole / (whole + partial) < 0.75  # ~half (published masks are rarely whole-frame by chance)
+
+
+@pytest.mark.parametrize("partial_ratio", [0.0, 0.5])
+def test_two_stream_batches_keep_a_clean_context_and_mask_every_later_frame(partial_ratio):
+    config = tiny_config(two_stream_ratio=1.0, two_stream_partial_ratio=partial_ratio, max_corrupt_rate=0.0,
+                         non_mlm_ratio=1.0)
+    collate = get_maskgit_collator(config, seed=0)
+    whole = partly = 0
+    for step in range(20):
+        features = make_features(4, seed=step, actions=True)
+        batch = collate(features)
+        assert set(batch) == {"input_ids", "target_ids", "labels", "actions"}
+        context, targets, labels = frames(batch["input_ids"]), frames(batch["target_ids"]), frames(batch["labels"])
+        assert torch.equal(context, labels), "the context is whole and, without corruption, clean"
+        masked = targets == config.mask_token_id
+        assert not masked[:, 0].any() and masked[:, 1:].any(-1).all(), "every frame >= 1 is a target"
+        assert torch.equal(targets[~masked], labels[~masked])
+        per_frame = masked[:, 1:].sum(-1)
+        whole += int((per_frame == S).sum())
+        partly += int((per_frame < S).sum())
+    if partial_ratio == 0.0:
+        assert partly == 0
+    else:
+        assert 0.25 < partly / (whole + partly) < 0.5  # ~half drawn partial, some of those masked whole anyway
+
+
+def test_two_stream_ratio_mixes_batches_and_keeps_light_corruption():
+    config = tiny_config(two_stream_ratio=0.5, max_corrupt_rate=1.0)
+    collate = get_maskgit_collator(config, seed=1)
+    kinds = []
+    for step in range(40):
+        batch = collate(make_features(2, seed=step))
+        kinds.append("target_ids" in batch)
+        if kinds[-1]:
+            context = batch["input_ids"]
+            assert not (context == config.mask_token_id).any()
+            assert (context >= 0).all() and (context < VOCAB).all()
+    assert 10 < sum(kinds) < 30
+    assert any(not torch.equal(b["input_ids"], b["labels"]) for b in
+               [collate(make_features(2, seed=s)) for s in range(40)] if "target_ids" in b), \
+        "the context gets step 1's random corruption"

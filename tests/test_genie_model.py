@@ -235,6 +235,103 @@ def test_masked_only_readout_gives_same_loss_acc_and_gradients(uses_actions):
         torch.testing.assert_close(grads[1][name], grads[0][name], atol=1e-6, rtol=1e-5)
 
 
+@pytest.mark.parametrize("uses_actions", [False, True])
+def test_two_stream_loss_equals_one_full_pass_per_target(uses_actions):
+    """target_ids: every frame t >= 1 predicted from clean frames < t in one pass; the reference runs the whole
+    window once per target (frame t = its masked version, later frames masked) through compute_logits."""
+    extra = dict(num_latent_actions=3, action_dropout=0.0) if uses_actions else {}
+    config = tiny_config(**extra)
+    model = sharp_readout_model(config)
+    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    g = torch.Generator().manual_seed(7)
+    masked = torch.rand(labels.shape, generator=g) < 0.6
+    masked[:, 0] = False
+    targets = labels.masked_fill(masked, config.mask_token_id)
+    kwargs = dict(latent_actions=torch.randint(0, 3, (2, 4), generator=g)) if uses_actions else {}
+
+    out = model(labels.flatten(1), labels.flatten(1), target_ids=targets.flatten(1), **kwargs)
+    assert out.logits is None
+    out.loss.backward()
+    grads = {n: p.grad.clone() for n, p in model.named_parameters()}
+    model.zero_grad()
+
+    V = config.factored_vocab_size
+    ce_sum, right_sum = 0.0, 0
+    for t in range(1, 4):
+        window = labels.clone()
+        window[:, t] = targets[:, t]
+        window[:, t + 1:] = config.mask_token_id
+        logp = model.compute_logits(window, **kwargs)[:, :, t].reshape(2, 2, V, 4, 4).log_softmax(dim=2)
+        lab = labels[:, t]
+        ce = -(logp[:, 0].gather(1, (lab % V).unsqueeze(1)) + logp[:, 1].gather(1, (lab // V).unsqueeze(1)))
+        right = (logp[:, 0].argmax(1) == lab % V) & (logp[:, 1].argmax(1) == lab // V)
+        ce_sum = ce_sum + ce.squeeze(1)[masked[:, t]].sum()
+        right_sum += int(right[masked[:, t]].sum())
+    reference = ce_sum / masked.sum()
+    reference.backward()
+    torch.testing.assert_close(out.loss, reference.detach())
+    torch.testing.assert_close(out.acc, torch.tensor(right_sum / masked.sum().item()))
+    assert grads["pos_embed_TSC"].abs().sum() > 0
+    for name, p in model.named_parameters():
+        torch.testing.assert_close(grads[name], p.grad, atol=1e-6, rtol=1e-5)
+
+
+def test_two_stream_rejects_masked_context_and_mismatched_targets():
+    config = tiny_config()
+    model = STMaskGIT(config)
+    labels = random_tokens(config, B=1, T=4, mask_rate=0.0).flatten(1)
+    with pytest.raises(ValueError, match="context frames .* must not hold mask tokens"):
+        model(labels.masked_fill(torch.ones_like(labels, dtype=torch.bool), config.mask_token_id), labels,
+              target_ids=labels)
+    with pytest.raises(ValueError, match="target_ids must have the shape of input_ids"):
+        model(labels, labels, target_ids=labels[:, :-16])
+
+
+def test_self_reveal_fills_masked_tokens_with_the_models_greedy_guesses():
+    config = tiny_config(self_reveal_ratio=1.0, T=4)
+    model = sharp_readout_model(config)
+    x = random_tokens(config, B=3, T=4, mask_rate=0.7)
+    torch.manual_seed(0)
+    revealed = model._reveal_own_predictions(x, None)
+    was_masked = x == config.mask_token_id
+    assert torch.equal(revealed[~was_masked], x[~was_masked]), "given tokens stay"
+    assert torch.equal(revealed[:, 0], x[:, 0]), "frame 0 is never a target"
+    filled = was_masked & (revealed != config.mask_token_id)
+    later_masked = was_masked[:, 1:].sum().item()
+    assert 0.15 < filled.sum().item() / later_masked < 0.6  # a 1 - cos(pi/2 u) share, 0.36 on average
+    with torch.no_grad():  # the guesses are the argmax of the full-logits path on the original input
+        logits = model.compute_logits(x).reshape(3, 2, config.factored_vocab_size, 4, 4, 4)
+    greedy = logits[:, 0].argmax(1) + config.factored_vocab_size * logits[:, 1].argmax(1)
+    assert torch.equal(revealed[filled], greedy[filled])
+
+
+def test_self_reveal_only_in_training_and_only_for_the_chosen_share():
+    config = tiny_config(self_reveal_ratio=1.0, T=4)
+    model = sharp_readout_model(config)
+    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    g = torch.Generator().manual_seed(1)
+    x = labels.masked_fill(torch.rand(labels.shape, generator=g) < 0.8, config.mask_token_id)
+    torch.manual_seed(5)
+    trained_on = model.train()(x.flatten(1), labels.flatten(1), return_logits=False)
+    torch.manual_seed(5)
+    revealed = model._reveal_own_predictions(x, None)
+    expected = model.eval()(revealed.flatten(1), labels.flatten(1))  # full-logits path, no reveal in eval mode
+    torch.testing.assert_close(trained_on.loss, expected.loss)
+    assert not torch.equal(revealed, x)
+    evaluated = model.eval()(x.flatten(1), labels.flatten(1), return_logits=False)
+    torch.testing.assert_close(evaluated.loss, model(x.flatten(1), labels.flatten(1)).loss)
+    assert not torch.allclose(evaluated.loss, trained_on.loss)
+    model.config.self_reveal_ratio = 0.0
+    assert torch.equal(model._reveal_own_predictions(x, None), x)
+
+
+@pytest.mark.parametrize("field", ["teacher_forced_ratio", "two_stream_ratio", "two_stream_partial_ratio",
+                                   "self_reveal_ratio"])
+def test_training_ratios_must_be_probabilities(field):
+    with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
+        tiny_config(**{field: 1.5})
+
+
 def test_masked_only_readout_without_masked_tokens_is_zero_loss():
     config = tiny_config()
     model = STMaskGIT(config)

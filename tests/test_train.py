@@ -84,6 +84,24 @@ def test_training_lowers_the_loss(tiny_data, tmp_path):
     assert not list_checkpoints(tmp_path)  # --checkpointing_steps 0 writes only final_checkpt
 
 
+def test_two_stream_training_lowers_the_teacher_forced_loss(tiny_data, tmp_path):
+    data = dict(tiny_data, config=write_config(tmp_path / "two_stream.json", two_stream_ratio=1.0,
+                                               two_stream_partial_ratio=0.3))
+    train.main(train_argv(data, tmp_path / "run", "--max_train_steps", "30", "--checkpointing_steps", "0",
+                          "--eval_every_n_steps", "15"))
+    config = GenieConfig.from_pretrained(data["config"])
+    torch.manual_seed(0)
+    untrained = STMaskGIT(config)
+    untrained.init_weights()
+    trained = STMaskGIT.from_pretrained(tmp_path / "run" / "final_checkpt")
+    ds = RawTokenDataset(data["val"], window_size=config.T, stride=1)
+    batch = get_maskgit_collator(config, seed=0)([ds[i] for i in range(8)])
+    assert "target_ids" in batch
+    with torch.no_grad():
+        before, after = (model.eval()(**batch).loss.item() for model in (untrained, trained))
+    assert after < 0.7 * before, (before, after)
+
+
 def test_checkpoint_round_trip_and_in_process_resume(tiny_data, tmp_path):
     full, resumed = tmp_path / "full", tmp_path / "resumed"
     extra = ("--max_train_steps", "6", "--checkpointing_steps", "2", "--checkpoints_total_limit", "0",
