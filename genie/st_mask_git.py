@@ -26,8 +26,8 @@ from torch import nn
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, load_json
 from genie.evaluation import factored_argmax_correct, factored_cross_entropy
-from genie.factorization import factorize_token_ids, unfactorize_token_ids
-from genie.sampling import maskgit_sample
+from genie.factorization import factorize_token_ids
+from genie.sampling import maskgit_sample, sample_factored_tokens
 from genie.schedule import cosine_schedule
 from genie.st_transformer import STTransformerDecoder, TemporalKVCache
 
@@ -243,22 +243,24 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         chosen_B = torch.rand(x_BTHW.shape[0], device=x_BTHW.device) < self.config.self_reveal_ratio
         if not chosen_B.any():
             return x_BTHW
-        x_bTHW = x_BTHW[chosen_B]
+        x_bTHW = x_BTHW[chosen_B]  # a copy
         masked_bTHW = x_bTHW == self.mask_token_id
         masked_bTHW[:, 0] = False
         hidden_NC = self._decode(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B])[
             rearrange(masked_bTHW, "b T H W -> b T (H W)")]
-        factors_NF = rearrange(self._readout(hidden_NC), "N (F V) -> N F V", F=self.config.num_factored_vocabs
-                               ).argmax(-1)
-        guesses_N = unfactorize_token_ids(factors_NF, self.config.num_factored_vocabs, self.config.factored_vocab_size)
+        logits_1VFN = rearrange(self._readout(hidden_NC), "N (F V) -> 1 V F N", F=self.config.num_factored_vocabs)
+        guesses_N = sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]  # greedy, as the sampler picks
         share_bT11 = 1 - cosine_schedule(torch.rand(*masked_bTHW.shape[:2], 1, 1, device=x_BTHW.device))
         reveal_bTHW = masked_bTHW & (torch.rand(masked_bTHW.shape, device=x_BTHW.device) < share_bT11)
-        filled_bTHW = x_bTHW.clone()
-        filled_bTHW[masked_bTHW] = guesses_N
-        x_bTHW = torch.where(reveal_bTHW, filled_bTHW, x_bTHW)
-        x_BTHW = x_BTHW.clone()
-        x_BTHW[chosen_B] = x_bTHW
-        return x_BTHW
+        x_bTHW[masked_bTHW] = torch.where(reveal_bTHW[masked_bTHW], guesses_N, self.mask_token_id)
+        return x_BTHW.index_put((chosen_B,), x_bTHW)
+
+    def _context_cache(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor]) -> TemporalKVCache:
+        """Temporal keys/values of context frames 0..T-2 of a window (B, T, H, W), for targets 1..T-1."""
+        n = x_BTHW.shape[1] - 1
+        kv_cache = self.new_kv_cache(n)
+        self._run_frames(x_BTHW[:, :n], 0, kv_cache, commit=n, readout=False, cond_BTC=_frames(cond_BTC, 0, n))
+        return kv_cache
 
     def _two_stream_loss(self, context_BTHW: torch.Tensor, targets_BTHW: torch.Tensor, labels_BTHW: torch.Tensor,
                          actions: Optional[torch.Tensor], latent_actions: Optional[torch.Tensor]) -> STMaskGITOutput:
@@ -273,9 +275,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             raise ValueError("two-stream training: the context frames (input_ids) must not hold mask tokens")
         B, T = context_BTHW.shape[:2]
         cond_BTC = self.action_embeds(B, T, actions, latent_actions)
-        kv_cache = self.new_kv_cache(T - 1)
-        self._run_frames(context_BTHW[:, :T - 1], 0, kv_cache, commit=T - 1, readout=False,
-                         cond_BTC=_frames(cond_BTC, 0, T - 1))
+        kv_cache = self._context_cache(context_BTHW, cond_BTC)
         x_BTSC = self._embed(rearrange(targets_BTHW[:, 1:], "B T H W -> B T (H W)"), 1, _frames(cond_BTC, 1, T))
         x_BTSC = self.decoder(x_BTSC, kv_cache, targets=True)
         relevant_BTS = rearrange(targets_BTHW[:, 1:] == self.mask_token_id, "B T H W -> B T (H W)")
@@ -405,9 +405,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         context_cond_BTC = self.action_embeds(B, T, actions, latent_actions, T)
         target_cond_BTC = self.action_embeds(B, T, actions, latent_actions, torch.arange(T))
         if use_cache:
-            kv_cache = self.new_kv_cache(n)
-            self._run_frames(x_BTHW[:, :n], 0, kv_cache, commit=n, readout=False,
-                             cond_BTC=_frames(context_cond_BTC, 0, n))
+            kv_cache = self._context_cache(x_BTHW, context_cond_BTC)
 
             def logits_fn(frames_NHW):
                 frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
