@@ -13,7 +13,7 @@
 The model owns its loss (model(input_ids, labels).loss); this script owns the loop.
 
 Crash safety: every `--checkpointing_steps` optimizer steps the full training state is written atomically to
-`output_dir/checkpoint-<step>/` (see genie/train_state.py). The data order depends only on the seed and the epoch,
+`output_dir/checkpoint-<step>/` (see common/train_state.py). The data order depends only on the seed and the epoch,
 and the collator's masking only on the seed and the position in the data, so a run resumed from a checkpoint takes
 exactly the steps the uninterrupted run would have taken. SIGTERM saves a checkpoint and exits cleanly.
 A step whose loss or gradient is NaN/inf is skipped; `--max_nonfinite_steps` of them in a row stop the run after
@@ -41,11 +41,13 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
-from data import RawTokenDataset, TokenDatasetError, get_maskgit_collator
+from common.errors import TrainingError
+from data import RawTokenDataset, TokenDatasetError
+from genie.masking import get_maskgit_collator
 from genie.actions import action_columns, action_statistics, latent_action_sidecar, split_actions, stream_dims
 from genie.config import ConfigError, GenieConfig
 from genie.st_mask_git import CheckpointError, STMaskGIT
-from genie.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
+from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, load_training_checkpoint, prune_checkpoints, remove_stale_temp_dirs,
                                resolve_resume_path, restore_rng_state, save_training_checkpoint)
 
@@ -55,8 +57,6 @@ CONFIG_DIR = Path(genie.configs.__file__).parent
 LR_SCHEDULES = ("constant", "constant_with_warmup", "linear", "cosine", "custom_cosine")
 
 
-class TrainingError(RuntimeError):
-    """The run cannot go on (bad data/config combination, diverged training)."""
 
 
 def first_existing(*paths) -> str:
@@ -94,7 +94,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "Their mean/std over the training split are stored in the checkpoint's config.json.")
     g.add_argument("--use_latent_actions", type=int, default=None, metavar="K",
                    help="Condition on LAM latent actions with codebook size K (ids from actions/latent_action.bin, "
-                        "written by genie/label_latent_actions.py); sets num_latent_actions on top of --genie_config.")
+                        "written by lam/label.py); sets num_latent_actions on top of --genie_config.")
     g.add_argument("--resume_from_checkpoint", default=None,
                    help="'latest' (newest complete checkpoint-<step> in --output_dir; starts fresh if there is none) "
                         "or a checkpoint directory: continue that run exactly.")

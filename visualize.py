@@ -7,7 +7,7 @@
   (prompt + predictions above, prompt + ground truth below). --offset / --stride / --max_examples pick examples.
 - Plain datasets: a GIF of frames offset, offset + stride, ... (at most --max_images).
 Optional per-frame text labels are drawn under each frame: --labels FILE, --label_action NAME (the values of the
-token dir's actions/NAME.bin, e.g. the latent actions written by genie.label_latent_actions), or `frame_labels`
+token dir's actions/NAME.bin, e.g. the latent actions written by lam.label), or `frame_labels`
 (a list or a function frame index -> text) in code.
 
     python visualize.py --token_dir data/genie_generated
@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 from PIL import Image, ImageDraw, ImageFont
 
 from data import RawTokenDataset, TokenDatasetError
-from genie.config import ConfigError
+from common.config import ConfigError
 from magvit2 import CheckpointError, VQModel
 
 logger = logging.getLogger(__name__)

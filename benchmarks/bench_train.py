@@ -15,7 +15,7 @@ import time
 
 import torch
 
-from data import get_maskgit_collator
+from genie.masking import get_maskgit_collator
 from genie.attention import SelfAttention
 from genie.config import GenieConfig
 from genie.st_mask_git import STMaskGIT

@@ -3,7 +3,7 @@
 Both come as per-frame streams in the token dataset layout (row t belongs to window frame t):
 - real actions (B, T, D), the config's `action_names` streams concatenated: row t is the command issued at frame
   t, which drives the transition t -> t+1, so frame t's tokens get + action_proj(normalized row t-1);
-- latent actions (B, T) ids from actions/latent_action.bin (genie/label_latent_actions.py): row t is the LAM's code
+- latent actions (B, T) ids from actions/latent_action.bin (lam/label.py): row t is the LAM's code
   of the transition t-1 -> t, so frame t's tokens get + latent_action_embed(row t).
 Frame 0 and every unknown row get "no action": a learned `null_action_embed`, and the extra latent id
 `num_latent_actions`.
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from data.token_dataset import RawTokenDataset, TokenDatasetError  # not `data`: its collator imports genie
+from data import RawTokenDataset, TokenDatasetError
 from genie.config import GenieConfig, load_json
 
 LATENT_ACTION_NAME = "latent_action"
@@ -113,7 +113,7 @@ def action_columns(config: GenieConfig, dataset: RawTokenDataset,
     wanted = list(config.action_names or []) + ([LATENT_ACTION_NAME] if use_latent else [])
     missing = [n for n in wanted if n not in offsets]
     if missing:
-        hint = (f"; run genie/label_latent_actions.py to write actions/{LATENT_ACTION_NAME}.bin"
+        hint = (f"; run lam/label.py to write actions/{LATENT_ACTION_NAME}.bin"
                 if LATENT_ACTION_NAME in missing else "")
         raise TokenDatasetError(f"{dataset.data_dir / 'actions'}: the model needs action stream(s) "
                                 f"{[n + '.bin' for n in missing]}, found {dataset.action_names or 'none'}{hint}")
@@ -173,7 +173,7 @@ def action_statistics(dataset: RawTokenDataset, names: List[str]) -> Tuple[List[
 
 
 def latent_action_sidecar(dataset: RawTokenDataset) -> dict:
-    """actions/latent_action.json written by genie/label_latent_actions.py (latent_action_stride,
+    """actions/latent_action.json written by lam/label.py (latent_action_stride,
     latent_action_num_past_frames, ...), or {} when absent."""
     path = dataset.data_dir / "actions" / f"{LATENT_ACTION_NAME}.json"
     return load_json(path, "latent action sidecar") if path.is_file() else {}

@@ -2,69 +2,11 @@
 import dataclasses
 import json
 import math
-import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import List, Optional
 
-
-class ConfigError(ValueError):
-    """A config file or dict that does not describe a valid model."""
-
-
-def _check_type(name: str, value: Any, annotation: Any, source: str) -> Any:
-    """Coerce JSON values to the field's type; raise ConfigError naming the field when they do not fit."""
-    origin = typing.get_origin(annotation)
-    if origin is typing.Union:  # Optional[X]
-        if value is None:
-            return None
-        annotation = next(a for a in typing.get_args(annotation) if a is not type(None))
-    if annotation is bool:
-        if isinstance(value, bool):
-            return value
-    elif annotation is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-    elif annotation is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-            return float(value)
-    elif annotation is str:
-        if isinstance(value, str):
-            return value
-    elif typing.get_origin(annotation) in (list, tuple) or annotation in (list, tuple):
-        if isinstance(value, (list, tuple)):
-            return list(value)
-    else:
-        return value
-    raise ConfigError(f"{source}: field {name!r} must be {getattr(annotation, '__name__', annotation)}, got {value!r}")
-
-
-def dataclass_from_dict(cls, d: dict, source: str = "config"):
-    """Build dataclass `cls` from a JSON dict: unknown keys and wrong types are errors that name `source`."""
-    if not isinstance(d, dict):
-        raise ConfigError(f"{source}: expected a JSON object, got {type(d).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise ConfigError(f"{source}: unknown key(s) {unknown} for {cls.__name__}; known keys: {sorted(names)}")
-    kwargs = {k: _check_type(k, v, hints[k], source) for k, v in d.items()}
-    try:
-        return cls(**kwargs)
-    except TypeError as e:  # missing required fields
-        raise ConfigError(f"{source}: {e}") from None
-
-
-def load_json(path, what: str = "config") -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} file not found: {path}")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{path}: not valid JSON ({e})") from None
+from common.config import ConfigError, dataclass_from_dict, load_json
 
 
 @dataclass
@@ -85,7 +27,7 @@ class GenieConfig:
     num_factored_vocabs: int = 2
     factored_vocab_size: Optional[int] = None  # derived: image_vocab_size ** (1 / num_factored_vocabs)
 
-    # MaskGIT training corruption (see data.get_maskgit_collator)
+    # MaskGIT training corruption (see genie.masking.get_maskgit_collator)
     max_corrupt_rate: float = 0.2
     non_mlm_ratio: float = 0.5
     num_prompt_frames: int = 8
@@ -108,7 +50,7 @@ class GenieConfig:
     action_std: Optional[List[float]] = None
     num_latent_actions: int = 0  # LAM codebook size; ids come from actions/latent_action.bin (0 = off)
     action_dropout: float = 0.1  # training: probability that a frame's action inputs are replaced by "no action"
-    # Training examples masked as the challenge evaluates (data.get_maskgit_collator): each frame >= 1 either
+    # Training examples masked as the challenge evaluates (genie.masking.get_maskgit_collator): each frame >= 1 either
     # fully masked or clean, so masked frames are predicted from whole earlier frames (0 = published recipe).
     teacher_forced_ratio: float = 0.0
     # Two-stream teacher-forced training (STMaskGIT.forward with target_ids): this fraction of the batches keeps

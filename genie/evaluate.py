@@ -16,7 +16,7 @@ adds three keys:
   frames are generated twice, with the latent actions inferred from the ground truth and with uniformly random
   ones (same seed, same sampling noise); delta_psnr = mean PSNR(inferred, gt) - mean PSNR(random, gt) over the
   decoded generated frames (null with --skip_lpips: nothing is decoded);
-- action_probe_acc, action_majority_rate: genie/action_probe.py's probe of the latent action ids against the
+- action_probe_acc, action_majority_rate: lam/probe.py's probe of the latent action ids against the
   true button combinations (actions/buttons.bin), fitted on --train_data_dir and scored on --val_data_dir (null
   when either lacks buttons.bin or latent_action.bin).
 This module is also the top-level `evaluate.py` (a thin wrapper around `main`).
@@ -37,10 +37,10 @@ from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
-from genie.action_probe import action_probe, transition_labels
+from lam.probe import action_probe, transition_labels
 from genie.actions import LATENT_ACTION_NAME, action_columns, latent_action_sidecar, split_actions
-from genie.config import ConfigError
-from genie.lam_data import valid_targets
+from common.config import ConfigError
+from lam.data import valid_targets
 from genie.evaluation import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
 from genie.st_mask_git import CheckpointError, STMaskGIT
@@ -268,7 +268,7 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
 def probe_examples(dataset: RawTokenDataset, default_stride: int):
     """(latent action ids, true button-combination labels) of the transitions with a LAM-inferred id, or None when
     the dataset lacks buttons.bin or latent_action.bin. The transition stride and LAM context come from
-    actions/latent_action.json (genie/label_latent_actions.py), else --stride and one past frame."""
+    actions/latent_action.json (lam/label.py), else --stride and one past frame."""
     if BUTTONS_NAME not in dataset.actions or LATENT_ACTION_NAME not in dataset.actions:
         logger.warning("%s: no actions/%s.bin or actions/%s.bin: the latent action probe is skipped",
                        dataset.data_dir, BUTTONS_NAME, LATENT_ACTION_NAME)

@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.actions import LATENT_ACTION_NAME, action_columns, split_actions
-from genie.config import ConfigError
+from common.config import ConfigError
 from genie.st_mask_git import CheckpointError, STMaskGIT
 
 logger = logging.getLogger("genie.generate")

@@ -23,6 +23,7 @@ from einops import rearrange
 from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
 from torch import nn
 
+from common.errors import CheckpointError
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, load_json
 from genie.evaluation import factored_argmax_correct, factored_cross_entropy
@@ -36,8 +37,6 @@ WEIGHTS_NAME = "model.safetensors"
 MUP_BASE_D_MODEL = 256  # the published muP base shape (set_mup_shapes hard-codes d_model 256)
 
 
-class CheckpointError(ValueError):
-    """A checkpoint whose files or weights do not match what the model expects."""
 
 
 class FactorizedEmbedding(nn.Module):
@@ -183,7 +182,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         return_logits=False (training): read out only the masked tokens the loss counts, skipping the (F*V)-wide
         logits of every other token (most of a small model's step), and return logits=None; loss and acc are the
         same. In training mode this path also applies config.self_reveal_ratio (`_reveal_own_predictions`).
-        target_ids (B, T*H*W): the two-stream teacher-forced objective (data.get_maskgit_collator with
+        target_ids (B, T*H*W): the two-stream teacher-forced objective (genie.masking.get_maskgit_collator with
         two_stream_ratio): input_ids are then whole context frames (no mask tokens) and frame t >= 1 of target_ids,
         masked where it is to be predicted, is a target that sees context frames < t and itself only, as in
         `teacher_forced`; every frame of a window is a target, each with its full history. logits=None.

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List
 
-from genie.config import ConfigError, dataclass_from_dict, load_json
+from common.config import ConfigError, dataclass_from_dict, load_json
 
 
 @dataclass

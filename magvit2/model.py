@@ -25,8 +25,9 @@ from einops import rearrange
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from genie.config import ConfigError
-from genie.train_state import atomic_file
+from common.errors import CheckpointError
+from common.config import ConfigError
+from common.files import atomic_file
 from magvit2.config import VQConfig
 from magvit2.lfq import LFQ, LFQOutput, ids_to_latents, latents_to_ids
 from magvit2.modules import Decoder, Encoder
@@ -41,8 +42,6 @@ MAX_LISTED_KEYS = 20
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
 
-class CheckpointError(ValueError):
-    """A tokenizer checkpoint that cannot be read or does not fit the model config."""
 
 
 class VQModel(nn.Module):

@@ -24,7 +24,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from data import TokenDatasetError, TokenDatasetWriter
-from genie.config import ConfigError
+from common.config import ConfigError
 from magvit2.model import CheckpointError, VQModel
 
 logger = logging.getLogger(__name__)

@@ -44,8 +44,9 @@ from safetensors.torch import load_file, save_file
 from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
-from genie.config import ConfigError
-from genie.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
+from common.errors import TrainingError
+from common.config import ConfigError
+from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, prune_checkpoints, read_json, remove_stale_temp_dirs,
                                resolve_resume_path, restore_rng_state, save_state_files, load_state_files)
 from magvit2.config import VQConfig
@@ -66,8 +67,6 @@ class FrameDataError(ValueError):
     """A training/validation frame source that cannot be read as uint8 RGB frames."""
 
 
-class TrainingError(RuntimeError):
-    """The run cannot go on (diverged, or a data/config combination that cannot work)."""
 
 
 # ---------------------------------------------------------------- frames

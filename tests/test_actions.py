@@ -12,8 +12,8 @@ from data import RawTokenDataset, read_metadata, write_token_dataset
 from genie import GenieConfig, STMaskGIT
 from genie import evaluate as genie_evaluate
 from genie import generate
-from genie.action_probe import button_combination_ids
-from genie.config import ConfigError
+from lam.probe import button_combination_ids
+from common.config import ConfigError
 
 D, K = 3, 4  # real action width, latent action codebook size
 SMALL = dict(num_layers=2, num_heads=2, d_model=32, T=5, S=16, image_vocab_size=64 ** 2, num_prompt_frames=2)

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from data import RawTokenDataset, get_maskgit_collator, write_token_dataset
+from data import RawTokenDataset, write_token_dataset
+from genie.masking import get_maskgit_collator
 from genie.config import GenieConfig
 from genie.factorization import factorize_token_ids
 

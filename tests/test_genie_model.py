@@ -10,7 +10,7 @@ import torch.nn.functional as F
 
 import genie
 from genie import GenieConfig, STMaskGIT
-from genie.config import ConfigError
+from common.config import ConfigError
 from genie.st_mask_git import CheckpointError
 
 CONFIG_DIR = Path(genie.__file__).parent / "configs"

@@ -5,7 +5,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from genie.config import ConfigError, GenieConfig
-from genie.lam import LAMConfig
+from lam.model import LAMConfig
 from magvit2 import VQConfig
 
 JSON_VALUES = st.one_of(st.none(), st.booleans(), st.integers(-2**70, 2**70),

@@ -6,11 +6,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from genie import label_latent_actions, train_lam
-from genie.action_probe import action_probe, button_combination_ids, combination_name, transition_labels
-from genie.config import ConfigError
-from genie.lam import LAM, LAMConfig, VectorQuantizer, local_correlation, psnr
-from genie.lam_data import gather_transitions, valid_targets
+from lam import label as label_latent_actions, train as train_lam
+from lam.probe import action_probe, button_combination_ids, combination_name, transition_labels
+from common.config import ConfigError
+from lam.model import LAM, LAMConfig, VectorQuantizer, local_correlation, psnr
+from lam.data import gather_transitions, valid_targets
 
 TINY = dict(image_size=16, channels=[8, 16], latent_dim=8, codebook_size=8, dead_code_steps=20)
 SHIFTS = [(0, -2), (0, 2), (-2, 0), (2, 0)]  # the hidden action: roll the image left / right / up / down

@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn as nn
 
-from genie.config import ConfigError
+from common.config import ConfigError
 from magvit2 import CheckpointError, VQConfig, VQModel
 from magvit2.modules import Upsampler, depth_to_space
 

@@ -1,5 +1,5 @@
 """Crash safety of train.py: SIGKILL + resume equality, SIGTERM checkpoint, non-finite guard, 2-process DDP,
-and the atomic / safe serialization helpers in genie/train_state.py."""
+and the atomic / safe serialization helpers in common/train_state.py."""
 import os
 import random
 import signal
@@ -16,7 +16,7 @@ import torch
 import train
 from genie.config import GenieConfig
 from genie.st_mask_git import STMaskGIT
-from genie.train_state import (COMPLETE_MARKER, TrainingStateError, atomic_directory, capture_rng_state,
+from common.train_state import (COMPLETE_MARKER, TrainingStateError, atomic_directory, capture_rng_state,
                                list_checkpoints, load_state_files, load_training_checkpoint, remove_stale_temp_dirs,
                                resolve_resume_path, restore_rng_state, save_state_files)
 from tests.test_train import (assert_same_weights, load_weights, make_token_dataset, masked_val_loss, train_argv,
@@ -170,7 +170,7 @@ def test_two_process_ddp_training_and_single_process_resume(data, tmp_path):
     assert (tmp_path / "single" / "final_checkpt" / "model.safetensors").is_file()
 
 
-# ---------------------------------------------------------------- genie/train_state.py helpers
+# ---------------------------------------------------------------- common/train_state.py helpers
 
 def test_atomic_directory_never_leaves_a_partial_directory(tmp_path):
     target = tmp_path / "checkpoint-1"

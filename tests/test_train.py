@@ -7,10 +7,11 @@ import torch
 from safetensors.torch import load_file
 
 import train
-from data import RawTokenDataset, get_maskgit_collator, write_token_dataset
+from data import RawTokenDataset, write_token_dataset
+from genie.masking import get_maskgit_collator
 from genie.config import GenieConfig
 from genie.st_mask_git import STMaskGIT
-from genie.train_state import (COMPLETE_MARKER, ResumableBatchSampler, list_checkpoints,
+from common.train_state import (COMPLETE_MARKER, ResumableBatchSampler, list_checkpoints,
                                load_training_checkpoint)
 
 TINY = {"num_layers": 2, "num_heads": 2, "d_model": 32, "T": 4, "S": 16, "image_vocab_size": 4096,

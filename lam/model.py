@@ -30,8 +30,8 @@ from einops import rearrange
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from genie.config import ConfigError, dataclass_from_dict, load_json
-from genie.train_state import atomic_file
+from common.config import ConfigError, dataclass_from_dict, load_json
+from common.files import atomic_file
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"

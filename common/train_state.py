@@ -10,7 +10,6 @@ Everything is written into a hidden temporary directory that is renamed into pla
 moment leaves either the previous set of checkpoints or the new one, never a half-written directory that looks valid.
 Nothing here unpickles: tensors come from safetensors, everything else from JSON.
 """
-import contextlib
 import json
 import math
 import os
@@ -23,9 +22,10 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-COMPLETE_MARKER = "COMPLETE"
+from common.files import (COMPLETE_MARKER, TMP_PREFIX, atomic_directory, atomic_file, is_complete,
+                          remove_stale_temp_dirs)
+
 CHECKPOINT_PREFIX = "checkpoint-"
-TMP_PREFIX = ".tmp-"
 FORMAT_VERSION = 1
 _CHECKPOINT_RE = re.compile(rf"^{CHECKPOINT_PREFIX}(\d+)$")
 
@@ -34,15 +34,7 @@ class TrainingStateError(RuntimeError):
     """A checkpoint directory that is missing, incomplete or does not match the run."""
 
 
-# ---------------------------------------------------------------- atomic file system operations
-
-def _fsync_path(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
+# ---------------------------------------------------------------- JSON
 
 def read_json(path, what: str):
     path = Path(path)
@@ -52,65 +44,6 @@ def read_json(path, what: str):
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise TrainingStateError(f"{path}: {what} is not valid JSON ({e})") from None
-
-
-def atomic_file(path, write) -> None:
-    """Write one file atomically: `write(tmp_path)` fills a temporary sibling that then replaces `path`."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-@contextlib.contextmanager
-def atomic_directory(final_dir):
-    """Yield a temporary directory; on success mark it complete and rename it to `final_dir` (replacing it).
-
-    On an exception the temporary directory is removed and `final_dir` is left untouched. Replacing an existing
-    directory takes two renames (POSIX cannot swap directories atomically): a kill between them leaves no
-    `final_dir`, never a partial one. Training checkpoints are never replaced, only new steps written.
-    """
-    final_dir = Path(final_dir)
-    final_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = final_dir.with_name(f"{TMP_PREFIX}{final_dir.name}.{os.getpid()}")
-    shutil.rmtree(tmp_dir, ignore_errors=True)
-    tmp_dir.mkdir()
-    try:
-        yield tmp_dir
-        for f in tmp_dir.iterdir():  # data reaches the disk before the marker and the rename can
-            if f.is_file():
-                _fsync_path(f)
-        (tmp_dir / COMPLETE_MARKER).write_text("complete\n")
-        _fsync_path(tmp_dir / COMPLETE_MARKER)
-        if final_dir.exists():  # rename() cannot replace a non-empty directory: move the old one aside first
-            old_dir = final_dir.with_name(f"{TMP_PREFIX}old-{final_dir.name}.{os.getpid()}")
-            os.replace(final_dir, old_dir)
-            os.replace(tmp_dir, final_dir)
-            shutil.rmtree(old_dir, ignore_errors=True)
-        else:
-            os.replace(tmp_dir, final_dir)
-        _fsync_path(final_dir.parent)
-    except BaseException:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
-        raise
-
-
-def is_complete(ckpt_dir) -> bool:
-    return (Path(ckpt_dir) / COMPLETE_MARKER).is_file()
-
-
-def remove_stale_temp_dirs(output_dir) -> None:
-    """Delete leftovers of writes that were killed half-way (hidden `.tmp-*` entries)."""
-    output_dir = Path(output_dir)
-    if output_dir.is_dir():
-        for p in output_dir.glob(f"{TMP_PREFIX}*"):
-            if p.is_dir():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------- nested state <-> safetensors + JSON

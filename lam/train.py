@@ -1,7 +1,7 @@
-"""Train the latent action model (genie/lam.py) on raw frames, then report how controllable and how meaningful its
+"""Train the latent action model (lam/model.py) on raw frames, then report how controllable and how meaningful its
 latent actions are on the validation frames.
 
-    python -m genie.train_lam --train_data data/sample/raw/train.npz --val_data data/sample/raw/val.npz
+    python -m lam.train --train_data data/sample/raw/train.npz --val_data data/sample/raw/val.npz
 
 Writes OUTPUT_DIR/config.json + model.safetensors (the LAM), OUTPUT_DIR/metrics.json, and every
 --checkpointing_steps a copy of the model in OUTPUT_DIR/checkpoint. The final report (also printed as one JSON line):
@@ -11,7 +11,7 @@ Writes OUTPUT_DIR/config.json + model.safetensors (the LAM), OUTPUT_DIR/metrics.
   just repeating the last past frame, for scale.
 - perplexity, codes_used_fraction, code_histogram: codebook usage on the validation transitions.
 - action_probe_acc vs action_majority_rate: how well latent actions predict the true button actions
-  (see genie/action_probe.py), when the files have `actions_buttons`.
+  (see lam/probe.py), when the files have `actions_buttons`.
 """
 import argparse
 import json
@@ -25,10 +25,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from genie.action_probe import action_probe, combination_name, transition_labels
-from genie.config import load_json
-from genie.lam import LAM, LAMConfig, code_usage, psnr
-from genie.lam_data import gather_transitions, infer_codes, load_frames_npz, valid_targets
+from lam.probe import action_probe, combination_name, transition_labels
+from common.config import load_json
+from lam.model import LAM, LAMConfig, code_usage, psnr
+from lam.data import gather_transitions, infer_codes, load_frames_npz, valid_targets
 
 logger = logging.getLogger("train_lam")
 
@@ -124,7 +124,7 @@ def evaluate(model: LAM, frames_NHWC: torch.Tensor, targets: np.ndarray, batch_s
 
 def probe_metrics(model: LAM, train: dict, train_frames: torch.Tensor, train_targets: np.ndarray, val: dict,
                   val_frames: torch.Tensor, val_targets: np.ndarray, batch_size: int, device) -> dict:
-    """Action probe (genie/action_probe.py) of the latent actions against the true button combinations."""
+    """Action probe (lam/probe.py) of the latent actions against the true button combinations."""
     stride = model.config.stride
     train_labels = transition_labels(train["buttons"], train_targets, stride)
     val_labels = transition_labels(val["buttons"], val_targets, stride)

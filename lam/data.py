@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from genie.lam import LAM, frames_to_tensor
+from lam.model import LAM, frames_to_tensor
 
 FRAMES_KEY = "frames"
 SEGMENTS_KEY = "segment_ids"

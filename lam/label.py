@@ -1,6 +1,6 @@
 """Label a token dataset with a trained LAM's latent actions: writes TOKEN_DIR/actions/latent_action.bin.
 
-    python -m genie.label_latent_actions --lam_dir data/lam --frames data/sample/raw/train.npz \
+    python -m lam.label --lam_dir data/lam --frames data/sample/raw/train.npz \
         --token_dir data/sample/train_tokens
 
 The token dataset must be built from the same frames, in the same order (same N, same segment boundaries).
@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from genie.config import load_json
-from genie.lam import LAM
-from genie.lam_data import infer_codes, load_frames_npz, valid_targets
-from genie.train_state import atomic_file
+from common.config import load_json
+from lam.model import LAM
+from lam.data import infer_codes, load_frames_npz, valid_targets
+from common.files import atomic_file
 
 logger = logging.getLogger("label_latent_actions")
 ACTION_NAME = "latent_action"

@@ -1,0 +1,1 @@
+"""What every package may use: strict JSON configs, atomic files and directories, training state, CLI helpers."""

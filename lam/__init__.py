@@ -1,0 +1,1 @@
+"""Genie's latent action model (LAM): a discrete action per frame transition, inferred from pixels."""
