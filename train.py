@@ -10,7 +10,7 @@
 
 (`accelerate launch --cpu --num_processes N` starts a single process unless MPI is configured.)
 
-The model owns its loss (model(input_ids, labels).loss); this script owns the loop.
+The model owns its loss (model(batch, recipe).loss, genie/objectives.py); this script owns the loop.
 
 Crash safety: every `--checkpointing_steps` optimizer steps the full training state is written atomically to
 `output_dir/checkpoint-<step>/` (see common/train_state.py). The data order depends only on the seed and the epoch,
@@ -44,9 +44,12 @@ import genie.configs
 from common.errors import TrainingError
 from data import RawTokenDataset, TokenDatasetError
 from genie.masking import get_maskgit_collator
-from genie.actions import action_columns, action_statistics, latent_action_sidecar, split_actions, stream_dims
-from genie.config import ConfigError, GenieConfig
-from genie.st_mask_git import CheckpointError, STMaskGIT
+from common.errors import CheckpointError
+from genie.actions import action_statistics, check_action_streams, latent_action_sidecar, stream_dims
+from genie.checkpoint import load_state_dict_checked
+from genie.config import ConfigError, GenieConfig, TrainingRecipe
+from genie.masking import MaskGITBatch
+from genie.model import STMaskGIT
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, load_training_checkpoint, prune_checkpoints, remove_stale_temp_dirs,
                                resolve_resume_path, restore_rng_state, save_training_checkpoint)
@@ -165,10 +168,11 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 # ---------------------------------------------------------------- setup
 
-def load_config(path) -> GenieConfig:
+def load_config(path):
+    """(GenieConfig, TrainingRecipe) of a --genie_config file (one JSON holds both, as the published one does)."""
     if path is None:
         path = first_existing(CONFIG_DIR / "sample_world.json", CONFIG_DIR / "tiny_test.json")
-    return GenieConfig.from_pretrained(path)
+    return GenieConfig.from_pretrained(path), TrainingRecipe.from_pretrained(path)
 
 
 def check_data_matches_config(dataset: RawTokenDataset, config: GenieConfig, window_size: int) -> None:
@@ -221,7 +225,7 @@ def build_model(config: GenieConfig, warmstart_path) -> STMaskGIT:
         if source.action_cond is None and model.action_cond is not None:
             # warm-starting an action-conditioned model from a video-only one: the action inputs start fresh
             state.update({f"action_cond.{k}": v for k, v in model.action_cond.state_dict().items()})
-        model.load_checkpoint_state_dict(state, source=f"--warmstart_path {warmstart_path}")
+        load_state_dict_checked(model, state, source=f"--warmstart_path {warmstart_path}")
     return model
 
 
@@ -287,17 +291,16 @@ class StopSignal:
 # ---------------------------------------------------------------- the loop
 
 class Trainer:
-    def __init__(self, args, accelerator: Accelerator, config: GenieConfig):
-        self.args, self.accelerator, self.config = args, accelerator, config
+    def __init__(self, args, accelerator: Accelerator, config: GenieConfig, recipe: TrainingRecipe):
+        self.args, self.accelerator, self.config, self.recipe = args, accelerator, config, recipe
         self.device = accelerator.device
         self.rank, self.world = accelerator.process_index, accelerator.num_processes
         B, ga = args.per_device_train_batch_size, args.gradient_accumulation_steps
         self.train_ds, self.val_ds = build_datasets(args, config, B * ga * self.world)
         raw_train_ds, raw_val_ds = (getattr(ds, "dataset", ds) for ds in (self.train_ds, self.val_ds))  # Subset
         self.config = config = configure_actions(config, args, raw_train_ds)
-        # which columns of a batch's concatenated actions the model takes (each split may have other streams)
-        self.train_columns = action_columns(config, raw_train_ds)
-        self.val_columns = action_columns(config, raw_val_ds)
+        for ds in (raw_train_ds, raw_val_ds):
+            check_action_streams(config, ds)
         lam_stride = latent_action_sidecar(raw_train_ds).get("latent_action_stride") if config.num_latent_actions \
             else None
         if lam_stride not in (None, args.stride):
@@ -347,7 +350,8 @@ class Trainer:
         rng_states = gather_object([capture_rng_state()]) if self.world > 1 else [capture_rng_state()]
         if self.accelerator.is_main_process:
             path = checkpoint_dir(self.args.output_dir, self.step)
-            save_training_checkpoint(path, self.model, self.optimizer, self.trainer_state(), rng_states)
+            save_training_checkpoint(path, self.model, self.optimizer, self.trainer_state(), rng_states,
+                                     model_kwargs={"recipe": self.recipe})
             prune_checkpoints(self.args.output_dir, self.args.checkpoints_total_limit)
             logger.info("saved training state to %s", path)
         self.last_saved_step = self.step
@@ -394,18 +398,8 @@ class Trainer:
             return self.args.num_workers
         return 4 if self.device.type == "cuda" else 0
 
-    def collate(self, items, seed: int) -> dict:
-        return self.model_inputs(get_maskgit_collator(self.config, seed=seed)(items), self.train_columns,
-                                 self.args.train_data_dir)
-
-    def model_inputs(self, batch: dict, columns, data_dir) -> dict:
-        """The collated batch's input_ids, labels, target_ids (two-stream batches) and (for action-conditioned
-        models) actions, on the device."""
-        inputs = {k: batch[k] for k in ("input_ids", "labels", "target_ids") if k in batch}
-        if self.config.uses_actions:
-            inputs["actions"], inputs["latent_actions"] = split_actions(
-                batch.get("actions"), columns, self.config.num_latent_actions, f"{data_dir}/actions")
-        return {k: v.to(self.device, non_blocking=True) for k, v in inputs.items() if v is not None}
+    def collate(self, items, seed: int) -> MaskGITBatch:
+        return get_maskgit_collator(self.config, self.recipe, seed=seed)(items).to(self.device, non_blocking=True)
 
     # ---- one optimizer step
     def forward_backward(self, micro_batches) -> torch.Tensor:
@@ -416,7 +410,7 @@ class Trainer:
         for i, batch in enumerate(micro_batches):
             sync = contextlib.nullcontext() if i == ga - 1 else self.accelerator.no_sync(self.ddp_model)
             with sync:
-                loss = self.ddp_model(**batch, return_logits=False).loss / ga
+                loss = self.ddp_model(batch, self.recipe).loss / ga
                 if inject:
                     loss = loss * float("nan")
                 self.accelerator.backward(loss)
@@ -459,15 +453,15 @@ class Trainer:
         sampler = ResumableBatchSampler(len(self.val_ds), self.args.per_device_eval_batch_size, self.world,
                                         self.rank, seed=0, drop_last=False)
         loader = DataLoader(self.val_ds, batch_sampler=sampler, collate_fn=keep_list, num_workers=0)
-        collator = get_maskgit_collator(self.config, seed=self.args.seed)
+        collator = get_maskgit_collator(self.config, self.recipe, seed=self.args.seed)
         model = self.model.eval()  # the plain module: no DDP hooks, no recompilation for eval mode
         totals = torch.zeros(3, dtype=torch.float64, device=self.device)  # loss * B, acc * B, B
         for i, items in enumerate(loader):
             if 0 < self.args.max_eval_steps <= i:
                 break
-            batch = self.model_inputs(collator(items), self.val_columns, self.args.val_data_dir)
+            batch = collator(items).to(self.device, non_blocking=True)
             with self.accelerator.autocast():
-                out = model(**batch, return_logits=False)
+                out = model(batch, self.recipe)
             n = len(items)
             totals += torch.stack([out.loss.double() * n, torch.as_tensor(out.acc).double().to(self.device) * n,
                                    torch.tensor(n, dtype=torch.float64, device=self.device)])
@@ -542,7 +536,7 @@ class Trainer:
         if self.accelerator.is_main_process:
             path = Path(self.args.output_dir) / "final_checkpt"
             with atomic_directory(path) as tmp:
-                self.model.save_pretrained(tmp)
+                self.model.save_pretrained(tmp, recipe=self.recipe)
             logger.info("saved the final model to %s", path)
         self.accelerator.wait_for_everyone()
 
@@ -584,14 +578,15 @@ def run(args) -> None:
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
     set_seed(args.seed)
-    config = load_config(args.genie_config)
+    config, recipe = load_config(args.genie_config)
     if accelerator.is_main_process:
         Path(args.output_dir).mkdir(parents=True, exist_ok=True)
         remove_stale_temp_dirs(args.output_dir)
     accelerator.wait_for_everyone()
-    trainer = Trainer(args, accelerator, config)
+    trainer = Trainer(args, accelerator, config, recipe)
     accelerator.init_trackers("genie", config={k: v if isinstance(v, (int, float, str, bool)) else str(v)
-                                               for k, v in {**vars(args), **trainer.config.to_dict()}.items()})
+                                               for k, v in {**vars(args), **trainer.config.to_dict(),
+                                                             **recipe.to_dict()}.items()})
     try:
         trainer.train()
     finally:

@@ -5,9 +5,9 @@
 
 Both evaluators run the same weights on the same synthetic validation windows (written with the data API and read
 back with the challenge's window 16 / stride 15 / non-overlapping filter). The full-recomputation evaluator is
-written here, following the published protocol: for every target frame t and every MaskGIT step it recomputes
-the whole window with ground truth before t and masks from t on. Ours is STMaskGIT.teacher_forced (context once,
-all targets in one cached pass per step). Prints seconds per generated frame for both, the ratio, and whether the
+genie.reference.teacher_forced_uncached, the published protocol: for every target frame t and every MaskGIT step it
+recomputes the whole window with ground truth before t and masks from t on. Ours is genie.inference.teacher_forced
+(context once, all targets in one cached pass per step). Prints seconds per generated frame for both, the ratio, and whether the
 metrics agree (CE to tolerance; sampled tokens identical at temperature 0). Then autoregressive generation
 (8 prompt frames -> 16) with and without the cache.
 """
@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from einops import rearrange
-
 import genie
 from data import RawTokenDataset, write_token_dataset
-from genie import GenieConfig, STMaskGIT, maskgit_sample
+from genie import GenieConfig, STMaskGIT
 from genie.evaluation import factored_cross_entropy
+from genie.inference import generate, teacher_forced
+from genie.reference import generate_uncached, teacher_forced_uncached
 
 CONFIG_PATH = Path(genie.__file__).parent / "configs" / "magvit_n8_h8_d256.json"
 
@@ -73,32 +73,7 @@ def synthetic_windows(config: GenieConfig, num_windows: int, seed: int, root: Pa
     write_token_dataset(root / "val", video, segment_ids=np.repeat(np.arange(num_windows), frames),
                         metadata={"vocab_size": config.image_vocab_size})
     dataset = RawTokenDataset(root / "val", window_size=T, stride=stride, filter_overlaps=True)
-    return torch.stack([dataset[i]["input_ids"].view(T, s, s) for i in range(num_windows)])
-
-
-def full_recompute_teacher_forced(model: STMaskGIT, x_BTHW: torch.Tensor, maskgit_steps: int,
-                                  generator: torch.Generator):
-    """The published protocol: every target frame, every MaskGIT step, recomputes the whole window."""
-    B, T = x_BTHW.shape[:2]
-    F_ = model.config.num_factored_vocabs
-
-    def logits_fn(frames_NHW):
-        frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
-        per_target = []
-        for t in range(1, T):
-            window = x_BTHW.clone()
-            window[:, t] = frames_BnHW[:, t - 1]
-            window[:, t + 1:] = model.mask_token_id
-            per_target.append(model.compute_logits(window)[:, :, t])
-        return rearrange(torch.stack(per_target, dim=1), "B n (F V) H W -> (B n) V F H W", F=F_)
-
-    masked = torch.full((B * (T - 1), *x_BTHW.shape[2:]), model.mask_token_id, device=x_BTHW.device)
-    samples, logits = maskgit_sample(logits_fn, masked, model.mask_token_id, maskgit_steps, generator=generator)
-    return (rearrange(samples, "(B n) H W -> B n H W", B=B), rearrange(logits, "(B n) V F H W -> B V F n H W", B=B))
-
-
-def cached_teacher_forced(model, x_BTHW, maskgit_steps, generator):
-    return model.teacher_forced(x_BTHW, maskgit_steps, generator=generator)
+    return torch.stack([dataset[i]["tokens"] for i in range(num_windows)])
 
 
 class Timer:
@@ -122,7 +97,7 @@ def compare_evaluators(model, windows, args, device, autocast) -> dict:
 
     -> {name: (Timer, CE, acc, samples)}
     """
-    evaluators = {"full": full_recompute_teacher_forced, "ours": cached_teacher_forced}
+    evaluators = {"full": teacher_forced_uncached, "ours": teacher_forced}
     state = {name: dict(timer=Timer(device), generator=torch.Generator(device=device).manual_seed(args.seed),
                         ce=0.0, correct=0, samples=[]) for name in evaluators}
     for a in range(0, len(windows), args.batch_size):
@@ -130,7 +105,7 @@ def compare_evaluators(model, windows, args, device, autocast) -> dict:
         for name, fn in evaluators.items():
             st = state[name]
             with st["timer"](), torch.no_grad(), autocast:
-                samples, logits = fn(model, x, args.maskgit_steps, st["generator"])
+                samples, logits = fn(model, x, args.maskgit_steps, generator=st["generator"])
             st["ce"] += factored_cross_entropy(logits, x[:, 1:]).sum().item()
             st["correct"] += (samples == x[:, 1:]).sum().item()
             st["samples"].append(samples.cpu())
@@ -145,8 +120,8 @@ def timed_generation(model, windows, args, device, autocast, use_cache: bool, nu
     for a in range(0, len(windows), args.batch_size):
         prompt = windows[a:a + args.batch_size, :num_prompt].to(device)
         with timer(), autocast:
-            model.generate(prompt, windows.shape[1] - num_prompt, args.maskgit_steps, use_cache=use_cache,
-                           generator=generator)
+            (generate if use_cache else generate_uncached)(model, prompt, windows.shape[1] - num_prompt,
+                                                           args.maskgit_steps, generator=generator)
     return timer
 
 
@@ -172,7 +147,7 @@ def main():
           f"{args.num_windows} windows, batch {args.batch_size}, maskgit_steps {args.maskgit_steps}")
 
     with torch.no_grad(), autocast:  # warm-up (allocator, kernels)
-        model.teacher_forced(windows[:1].to(device), 1)
+        teacher_forced(model, windows[:1].to(device), 1)
 
     results = compare_evaluators(model, windows, args, device, autocast)
     (full_timer, full_ce, full_acc, full_samples), (ours_timer, ours_ce, ours_acc, ours_samples) = \

@@ -16,9 +16,10 @@ import time
 import torch
 
 from genie.masking import get_maskgit_collator
-from genie.attention import SelfAttention
+from genie.attention import set_cpu_bf16_math
 from genie.config import GenieConfig
-from genie.st_mask_git import STMaskGIT
+from genie.model import STMaskGIT
+from genie.reference import full_logits_loss
 
 PUBLISHED_TOKENS_PER_S = 1840.0
 
@@ -54,10 +55,9 @@ def make_step(model, optimizer, collate, windows, device, mixed_precision, full_
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=mixed_precision == "bf16")
 
     def step():
-        batch = collate(windows)
+        batch = collate(windows).to(device)
         with autocast:
-            loss = model(input_ids=batch["input_ids"].to(device), labels=batch["labels"].to(device),
-                         return_logits=full_readout).loss
+            loss = (full_logits_loss(model, batch) if full_readout else model(batch)).loss
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         optimizer.step()
@@ -77,15 +77,15 @@ def build(args, device):
     model.to(device).train()
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4, fused=device.type == "cuda" or None)
     generator = torch.Generator().manual_seed(0)
-    windows = [{"input_ids": torch.randint(0, config.image_vocab_size, (config.T * config.S,), generator=generator)}
-               for _ in range(args.batch_size)]
+    windows = [{"tokens": torch.randint(0, config.image_vocab_size, (config.T, config.H, config.W),
+                                        generator=generator)} for _ in range(args.batch_size)]
     return config, model, optimizer, windows
 
 
 def measure(args, device, mixed_precision: str, math_path: bool, full_readout: bool = False) -> float:
     """Seconds per optimizer step (wall) of a freshly built model; prints one line."""
-    SelfAttention.cpu_bf16_math_path = math_path
     config, model, optimizer, windows = build(args, device)
+    set_cpu_bf16_math(model, math_path)
     compiled = torch.compile(model) if args.compile else model
     step = make_step(compiled, optimizer, get_maskgit_collator(config, seed=0), windows, device, mixed_precision,
                      full_readout)

@@ -17,6 +17,7 @@ import random
 import re
 import shutil
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -238,11 +239,13 @@ def prune_checkpoints(output_dir, keep: int) -> None:
         shutil.rmtree(doomed, ignore_errors=True)
 
 
-def save_training_checkpoint(ckpt_dir, model, optimizer, trainer_state: dict, rng_states: list) -> None:
-    """Atomically write a full training checkpoint. `model` must have `save_pretrained(dir)`; `trainer_state` is
-    JSON-serializable (step, epoch, scheduler state, ...); `rng_states` holds one `capture_rng_state()` per process."""
+def save_training_checkpoint(ckpt_dir, model, optimizer, trainer_state: dict, rng_states: list,
+                             model_kwargs: Optional[dict] = None) -> None:
+    """Atomically write a full training checkpoint. `model` must have `save_pretrained(dir, **model_kwargs)`;
+    `trainer_state` is JSON-serializable (step, epoch, scheduler state, ...); `rng_states` holds one
+    `capture_rng_state()` per process."""
     with atomic_directory(ckpt_dir) as tmp:
-        model.save_pretrained(tmp)
+        model.save_pretrained(tmp, **(model_kwargs or {}))
         save_state_files(tmp, "optimizer", optimizer.state_dict())
         save_state_files(tmp, "rng", rng_states)
         (tmp / "trainer_state.json").write_text(

@@ -222,8 +222,8 @@ class RawTokenDataset(Dataset):
     """Windows of `window_size` frames, `stride` frames apart, from a token dataset directory (memory-mapped).
 
     Item idx is frames data[start : start + (window_size-1)*stride + 1 : stride] with start = valid_start_inds[idx],
-    returned as a dict: input_ids, labels, attention_mask (T*s*s,) int64, start_ind (int) and, when the directory
-    has actions/, actions (T, sum of action dims) float32 in action_names order.
+    returned as a dict: "tokens" (T, s, s) int64 and "actions", a dict stream name -> (T, dim) float32 tensor of
+    every stream in actions/ (empty without actions/).
 
     filter_interrupts: drop windows that cross two segments (needs segment_ids.bin).
     filter_overlaps: keep a subset of windows so that each frame is used at most once (validation).
@@ -310,12 +310,8 @@ class RawTokenDataset(Dataset):
         tokens_Tss = np.asarray(self.data[start_ind:start_ind + (self.window_size - 1) * self.stride + 1:self.stride])
         if self.check_tokens:
             _check_token_range(tokens_Tss, self.vocab_size, self.data_dir / "video.bin", start_ind, self.stride)
-        x = torch.from_numpy(tokens_Tss.astype(np.int64)).flatten()
-        item = {"input_ids": x, "labels": x.clone(), "attention_mask": torch.ones_like(x), "start_ind": start_ind}
-        if self.action_names:
-            actions = self.get_window_actions(start_ind)
-            item["actions"] = torch.from_numpy(np.concatenate([actions[n] for n in self.action_names], axis=1))
-        return item
+        actions = {name: torch.from_numpy(values) for name, values in self.get_window_actions(start_ind).items()}
+        return {"tokens": torch.from_numpy(tokens_Tss.astype(np.int64)), "actions": actions}
 
     def validate(self, full: bool = True) -> None:
         """Check token ids (< vocab_size) and action values (finite); raise on the first problem.

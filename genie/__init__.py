@@ -1,7 +1,12 @@
 """GENIE dynamics model: spatio-temporal transformer with factored logits, trained and sampled with MaskGIT."""
-from genie.config import GenieConfig
+from common.errors import CheckpointError
+from genie.config import GenieConfig, TrainingRecipe
+from genie.kv_cache import TemporalKVCache
+from genie.masking import MaskGITBatch, get_maskgit_collator
+from genie.model import STMaskGIT
+from genie.objectives import LossOutput
 from genie.sampling import maskgit_sample
-from genie.st_mask_git import CheckpointError, STMaskGIT, STMaskGITOutput
-from genie.st_transformer import TemporalKVCache
 
-__all__ = ["CheckpointError", "GenieConfig", "STMaskGIT", "STMaskGITOutput", "TemporalKVCache", "maskgit_sample"]
+# inference: genie.inference.generate / teacher_forced (not exported here: genie/generate.py is the script)
+__all__ = ["CheckpointError", "GenieConfig", "LossOutput", "MaskGITBatch", "STMaskGIT", "TemporalKVCache",
+           "TrainingRecipe", "get_maskgit_collator", "maskgit_sample"]

@@ -100,56 +100,57 @@ class ActionConditioning(nn.Module):
 
 
 # ---------------------------------------------------------------- reading actions from a token dataset
-def action_columns(config: GenieConfig, dataset: RawTokenDataset,
-                   require_latent: bool = True) -> Tuple[Optional[List[int]], Optional[int]]:
-    """Columns of the dataset's concatenated `actions` (sorted stream names) that hold the config's real actions
-    (in config.action_names order) and the latent action id; None for what the config does not use (and for latent
-    ids missing from the dataset when not `require_latent`)."""
-    offsets, start = {}, 0
-    for name in dataset.action_names:
-        offsets[name] = (start, dataset.action_dims[name])
-        start += dataset.action_dims[name]
-    use_latent = config.num_latent_actions > 0 and (require_latent or LATENT_ACTION_NAME in offsets)
+def check_action_streams(config: GenieConfig, dataset: RawTokenDataset, require_latent: bool = True) -> bool:
+    """Clear errors when the dataset lacks a stream the config's action inputs need, or has one of the wrong width.
+
+    Returns whether the latent action ids are read (the config uses them and, unless `require_latent`, the dataset
+    has them).
+    """
+    use_latent = config.num_latent_actions > 0 and (require_latent or LATENT_ACTION_NAME in dataset.action_dims)
     wanted = list(config.action_names or []) + ([LATENT_ACTION_NAME] if use_latent else [])
-    missing = [n for n in wanted if n not in offsets]
+    missing = [n for n in wanted if n not in dataset.action_dims]
     if missing:
         hint = (f"; run lam/label.py to write actions/{LATENT_ACTION_NAME}.bin"
                 if LATENT_ACTION_NAME in missing else "")
         raise TokenDatasetError(f"{dataset.data_dir / 'actions'}: the model needs action stream(s) "
                                 f"{[n + '.bin' for n in missing]}, found {dataset.action_names or 'none'}{hint}")
-    real = None
-    if config.action_names:
-        real = [c for n in config.action_names for c in range(offsets[n][0], offsets[n][0] + offsets[n][1])]
-        if len(real) != config.action_dim:
-            raise TokenDatasetError(f"{dataset.data_dir / 'actions'}: streams {config.action_names} have "
-                                    f"{len(real)} values per frame, the model expects action_dim "
-                                    f"{config.action_dim}")
-    latent = None
-    if use_latent:
-        if offsets[LATENT_ACTION_NAME][1] != 1:
-            raise TokenDatasetError(f"{dataset.data_dir / 'actions' / (LATENT_ACTION_NAME + '.bin')}: expected one "
-                                    f"id per frame, found {offsets[LATENT_ACTION_NAME][1]} values")
-        latent = offsets[LATENT_ACTION_NAME][0]
-    return real, latent
+    width = sum(dataset.action_dims[n] for n in config.action_names or [])
+    if config.action_names and width != config.action_dim:
+        raise TokenDatasetError(f"{dataset.data_dir / 'actions'}: streams {config.action_names} have {width} values "
+                                f"per frame, the model expects action_dim {config.action_dim}")
+    if use_latent and dataset.action_dims[LATENT_ACTION_NAME] != 1:
+        raise TokenDatasetError(f"{dataset.data_dir / 'actions' / (LATENT_ACTION_NAME + '.bin')}: expected one "
+                                f"id per frame, found {dataset.action_dims[LATENT_ACTION_NAME]} values")
+    return use_latent
 
 
-def split_actions(all_actions_BTA: Optional[torch.Tensor], columns, num_latent_actions: int = 0,
-                  where: str = "actions") -> Tuple[Optional[torch.Tensor], Optional[torch.Tensor]]:
-    """A batch's concatenated actions (B, T, A) -> (real actions (B, T, D) or None, latent ids (B, T) or None)."""
-    real, latent = columns
-    if all_actions_BTA is None:
-        if real is not None or latent is not None:
-            raise TokenDatasetError(f"{where}: the model needs actions but the batch has none")
-        return None, None
-    actions_BTD = all_actions_BTA[:, :, real].float() if real is not None else None
+def stack_streams(items_actions: List[Dict[str, torch.Tensor]]) -> Dict[str, torch.Tensor]:
+    """Per-window action dicts (name -> (T, k), as the dataset yields them) -> name -> (B, T, k); a stream that
+    only some windows have is dropped (`window_actions` then names it when the model needs it)."""
+    names = set.intersection(*(set(a) for a in items_actions)) if items_actions else set()
+    return {n: torch.stack([torch.as_tensor(a[n]) for a in items_actions]) for n in sorted(names)}
+
+
+def window_actions(config: GenieConfig, streams: Dict[str, torch.Tensor], use_latent: bool = True,
+                   where: str = "actions") -> Tuple[Optional[torch.Tensor], Optional[torch.Tensor]]:
+    """A batch's action streams (name -> (B, T, k)) -> the model's inputs:
+    (real actions (B, T, D) float32: the config's action_names concatenated in order, or None;
+     latent action ids (B, T) int64, or None when the config has no latent actions or not `use_latent`)."""
+    def stream(name: str) -> torch.Tensor:
+        if name not in streams:
+            raise TokenDatasetError(f"{where}: the model needs the action stream {name}.bin, but the batch has "
+                                    f"{sorted(streams) or 'no actions'}")
+        return streams[name].float()
+
+    actions_BTD = torch.cat([stream(n) for n in config.action_names], dim=-1) if config.action_names else None
     latent_BT = None
-    if latent is not None:
-        values_BT = all_actions_BTA[:, :, latent]
+    if config.num_latent_actions and use_latent:
+        values_BT = stream(LATENT_ACTION_NAME)[..., 0]
         latent_BT = values_BT.round().long()
-        bad = (values_BT != latent_BT) | (latent_BT < 0) | (latent_BT >= num_latent_actions)
+        bad = (values_BT != latent_BT) | (latent_BT < 0) | (latent_BT >= config.num_latent_actions)
         if bad.any():
             raise TokenDatasetError(f"{where}/{LATENT_ACTION_NAME}.bin: latent action ids must be integers in "
-                                    f"[0, {num_latent_actions}), found {values_BT[bad][0].item()}")
+                                    f"[0, {config.num_latent_actions}), found {values_BT[bad][0].item()}")
     return actions_BTD, latent_BT
 
 

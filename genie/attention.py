@@ -21,12 +21,12 @@ def attention_scale(head_dim: int, use_mup: bool) -> float:
     return 8 / head_dim if use_mup else head_dim ** -0.5
 
 
-class SelfAttention(nn.Module):
-    # bf16 on CPU, sequences of at most this many keys (the temporal attention): the written-out path below, or
-    # torch's fused kernel when False (benchmarks/bench_train.py compares). Longer ones are faster fused.
-    cpu_bf16_math_path = True
-    cpu_bf16_math_max_keys = 64
+# bf16 on CPU, sequences of at most this many keys (the temporal attention) take the written-out path; longer ones
+# are faster in torch's fused kernel
+CPU_BF16_MATH_MAX_KEYS = 64
 
+
+class SelfAttention(nn.Module):
     def __init__(self, d_model: int, num_heads: int, qkv_bias: bool = False, proj_bias: bool = True,
                  qk_norm: bool = False, use_mup: bool = False, attn_drop: float = 0.0) -> None:
         super().__init__()
@@ -39,6 +39,9 @@ class SelfAttention(nn.Module):
         self.qk_norm = qk_norm
         if qk_norm:
             self.norm = nn.LayerNorm(self.head_dim, eps=1e-5)
+        # bf16 on CPU: the written-out path for short sequences (`_attend_bf16_cpu`); `set_cpu_bf16_math` turns it
+        # off per model (benchmarks/bench_train.py compares the two)
+        self.cpu_bf16_math = True
 
     def project_qkv(self, x_BNC: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(B, N, C) -> q, k, v, each (B, heads, N, head_dim)."""
@@ -68,8 +71,8 @@ class SelfAttention(nn.Module):
         attn_mask: optional bool (Nq, Nk), True where a query may attend to a key.
         """
         dropout_p = self.attn_drop if self.training else 0.0
-        if (self.cpu_bf16_math_path and q.device.type == "cpu" and q.dtype == torch.bfloat16
-                and k.shape[-2] <= self.cpu_bf16_math_max_keys):
+        if (self.cpu_bf16_math and q.device.type == "cpu" and q.dtype == torch.bfloat16
+                and k.shape[-2] <= CPU_BF16_MATH_MAX_KEYS):
             x_BhNd = self._attend_bf16_cpu(q, k, v, attn_mask, is_causal, dropout_p)
         else:
             x_BhNd = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, is_causal=is_causal,
@@ -115,3 +118,10 @@ class SelfAttention(nn.Module):
         probs = torch.cat([scores_ctx, score_self], dim=-1).softmax(dim=-1)
         x_BhNd = (probs[..., :n] @ context_v.float() + probs[..., n:] * v.float()).to(v.dtype)
         return self.proj(rearrange(x_BhNd, "B h N d -> B N (h d)"))
+
+
+def set_cpu_bf16_math(model: nn.Module, enabled: bool) -> None:
+    """Choose, for every attention layer of `model`, the written-out bf16 CPU path (True) or torch's fused kernel."""
+    for module in model.modules():
+        if isinstance(module, SelfAttention):
+            module.cpu_bf16_math = enabled

@@ -29,7 +29,7 @@ def frame_pairs(dataset: RawTokenDataset, max_windows: int = None):
     n = len(dataset) if max_windows is None else min(len(dataset), max_windows)
     s2 = dataset.metadata["s"] ** 2
     for i in range(n):
-        x_TS = dataset[i]["input_ids"].view(dataset.window_size, s2)
+        x_TS = dataset[i]["tokens"].reshape(dataset.window_size, s2)
         yield x_TS[:-1], x_TS[1:]
 
 

@@ -1,4 +1,11 @@
-"""GenieConfig: the dynamics model's hyper-parameters, field-for-field compatible with the published config.json."""
+"""The dynamics model's architecture (`GenieConfig`) and its training recipe (`TrainingRecipe`).
+
+A config.json (the published GENIE_35M one, ours, or a `--genie_config` file) holds the fields of both: the
+published file already mixes architecture with two training knobs (max_corrupt_rate, non_mlm_ratio).
+`GenieConfig.from_dict` keeps the architecture and ignores the recipe's keys; `TrainingRecipe.from_dict` the other
+way round; a key that belongs to neither is an error. Checkpoints saved before the split (their config.json has
+`teacher_forced_ratio`) load through `LEGACY_RECIPE_KEYS`.
+"""
 import dataclasses
 import json
 import math
@@ -27,10 +34,7 @@ class GenieConfig:
     num_factored_vocabs: int = 2
     factored_vocab_size: Optional[int] = None  # derived: image_vocab_size ** (1 / num_factored_vocabs)
 
-    # MaskGIT training corruption (see genie.masking.get_maskgit_collator)
-    max_corrupt_rate: float = 0.2
-    non_mlm_ratio: float = 0.5
-    num_prompt_frames: int = 8
+    num_prompt_frames: int = 8  # ground-truth frames before the predicted ones (generation, delta-PSNR, masking)
 
     qkv_bias: bool = False
     proj_bias: bool = True
@@ -50,20 +54,6 @@ class GenieConfig:
     action_std: Optional[List[float]] = None
     num_latent_actions: int = 0  # LAM codebook size; ids come from actions/latent_action.bin (0 = off)
     action_dropout: float = 0.1  # training: probability that a frame's action inputs are replaced by "no action"
-    # Training examples masked as the challenge evaluates (genie.masking.get_maskgit_collator): each frame >= 1 either
-    # fully masked or clean, so masked frames are predicted from whole earlier frames (0 = published recipe).
-    teacher_forced_ratio: float = 0.0
-    # Two-stream teacher-forced training (STMaskGIT.forward with target_ids): this fraction of the batches keeps
-    # every frame clean as context and predicts every frame t >= 1 from frames < t in a second stream, as
-    # STMaskGIT.teacher_forced and generate infer (0 = published recipe).
-    two_stream_ratio: float = 0.0
-    # Of the two-stream targets, this fraction is partly masked (MaskGIT's cosine rate) instead of whole, so that
-    # MaskGIT's later steps, which see some of the frame's own tokens, are trained too.
-    two_stream_partial_ratio: float = 0.0
-    # Training (STMaskGIT._reveal_own_predictions, the masked-readout loss train.py uses): this fraction of the
-    # examples has part of its masked tokens filled with the model's own greedy guesses, as MaskGIT's later steps
-    # see them at inference, so the model learns how far to trust them (0 = published recipe).
-    self_reveal_ratio: float = 0.0
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -83,11 +73,6 @@ class GenieConfig:
         self.factored_vocab_size = root
         if not 1 <= self.num_prompt_frames < self.T:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
-        if not 0.0 <= self.max_corrupt_rate <= 1.0 or not 0.0 <= self.non_mlm_ratio <= 1.0:
-            raise ConfigError("GenieConfig: max_corrupt_rate and non_mlm_ratio must be in [0, 1]")
-        for name in ("teacher_forced_ratio", "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ConfigError(f"GenieConfig: {name} must be in [0, 1], got {getattr(self, name)}")
         self._check_actions()
 
     def _check_actions(self) -> None:
@@ -138,15 +123,72 @@ class GenieConfig:
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "GenieConfig") -> "GenieConfig":
-        return dataclass_from_dict(cls, d, source)
-
-    def save(self, json_path) -> None:
-        Path(json_path).write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
+        """The architecture fields of a config dict; the training recipe's keys are left to TrainingRecipe."""
+        return dataclass_from_dict(cls, _split(d, source)[0], source)
 
     @classmethod
     def from_pretrained(cls, json_path) -> "GenieConfig":
         """Load a config JSON file (the name the 1X code uses)."""
         return cls.from_dict(load_json(json_path, "GENIE config"), source=str(json_path))
 
-    def shallow_copy(self) -> "GenieConfig":
-        return dataclasses.replace(self)
+
+@dataclass
+class TrainingRecipe:
+    """How the dynamics model is trained: MaskGIT corruption and the opt-in objectives (genie/masking.py,
+    genie/objectives.py). Defaults are the published recipe; nothing here changes the network or its inference."""
+    # published MaskGIT corruption: random factor values at up to this rate, and this share of the batches
+    # corrupted more in later frames (closer to autoregressive inference)
+    max_corrupt_rate: float = 0.2
+    non_mlm_ratio: float = 0.5
+    # this share of the examples masks every 2nd or 3rd frame whole, as the challenge evaluates: each masked frame
+    # is predicted from whole earlier frames, nothing of itself revealed
+    whole_frame_mask_ratio: float = 0.0
+    # this share of the batches is two-stream: the clean window as context, every frame t >= 1 a target over
+    # frames < t (the computation of the cached evaluation, with gradients)
+    two_stream_ratio: float = 0.0
+    # of the two-stream targets, this share is partly masked (MaskGIT's cosine rate) instead of whole
+    two_stream_partial_ratio: float = 0.0
+    # this share of the examples has part of its masked tokens filled with the model's own greedy guesses, as
+    # MaskGIT's later steps see them at inference, so the model learns how far to trust them
+    self_reveal_ratio: float = 0.0
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            if not 0.0 <= getattr(self, f.name) <= 1.0:
+                raise ConfigError(f"TrainingRecipe: {f.name} must be in [0, 1], got {getattr(self, f.name)}")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "TrainingRecipe") -> "TrainingRecipe":
+        """The recipe fields of a config dict (architecture keys are left to GenieConfig)."""
+        return dataclass_from_dict(cls, _split(d, source)[1], source)
+
+    @classmethod
+    def from_pretrained(cls, json_path) -> "TrainingRecipe":
+        return cls.from_dict(load_json(json_path, "GENIE config"), source=str(json_path))
+
+
+# config.json keys written by earlier versions of this repo -> their TrainingRecipe field
+LEGACY_RECIPE_KEYS = {"teacher_forced_ratio": "whole_frame_mask_ratio"}
+
+
+def _split(d: dict, source: str):
+    """A config dict -> (architecture dict, recipe dict); unknown keys are errors naming both dataclasses."""
+    if not isinstance(d, dict):
+        raise ConfigError(f"{source}: expected a JSON object, got {type(d).__name__}")
+    model_keys = {f.name for f in dataclasses.fields(GenieConfig)}
+    recipe_keys = {f.name for f in dataclasses.fields(TrainingRecipe)}
+    unknown = sorted(set(d) - model_keys - recipe_keys - set(LEGACY_RECIPE_KEYS))
+    if unknown:
+        raise ConfigError(f"{source}: unknown key(s) {unknown}; known keys: GenieConfig {sorted(model_keys)}, "
+                          f"TrainingRecipe {sorted(recipe_keys)}")
+    recipe = {LEGACY_RECIPE_KEYS.get(k, k): v for k, v in d.items() if k in recipe_keys or k in LEGACY_RECIPE_KEYS}
+    return {k: v for k, v in d.items() if k in model_keys}, recipe
+
+
+def save_config(json_path, config: GenieConfig, recipe: Optional[TrainingRecipe] = None) -> None:
+    """Write config.json: the architecture, plus the recipe it was trained with when known (as published)."""
+    d = {**config.to_dict(), **(recipe.to_dict() if recipe is not None else {})}
+    Path(json_path).write_text(json.dumps(d, indent=2, sort_keys=True) + "\n")

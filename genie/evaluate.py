@@ -38,12 +38,14 @@ from tqdm import tqdm
 
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from lam.probe import action_probe, transition_labels
-from genie.actions import LATENT_ACTION_NAME, action_columns, latent_action_sidecar, split_actions
+from genie.actions import LATENT_ACTION_NAME, check_action_streams, latent_action_sidecar, window_actions
 from common.config import ConfigError
 from lam.data import valid_targets
 from genie.evaluation import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
-from genie.st_mask_git import CheckpointError, STMaskGIT
+from common.errors import CheckpointError
+from genie.inference import generate, teacher_forced
+from genie.model import STMaskGIT
 from magvit2 import VQModel
 from magvit2.lpips import LPIPS
 
@@ -150,42 +152,39 @@ def _synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def batch_actions(model: STMaskGIT, batch: dict, columns, device: torch.device, args: argparse.Namespace):
+def batch_actions(model: STMaskGIT, batch: dict, device: torch.device, args: argparse.Namespace):
     """(real actions (B, T, D) or None, latent ids (B, T) or None) of a loader batch, for the model's inputs."""
     if not model.config.uses_actions:
         return None, None
-    actions_BTD, latent_BT = split_actions(batch.get("actions"), columns, model.config.num_latent_actions,
-                                           f"{args.val_data_dir}/actions")
+    actions_BTD, latent_BT = window_actions(model.config, batch["actions"], where=f"{args.val_data_dir}/actions")
     return (None if actions_BTD is None else actions_BTD.to(device),
             None if latent_BT is None else latent_BT.to(device))
 
 
 def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
-             scorer: Optional[FrameScorer] = None, outputs: Optional[list] = None, columns=None) -> dict:
+             scorer: Optional[FrameScorer] = None, outputs: Optional[list] = None) -> dict:
     """Run the teacher-forced protocol over `loader`; return the metrics dict (the JSON line's content).
 
     outputs: when a list, per-window frames (prompt | predictions | ground truth) are appended to it as numpy.
-    columns: genie.actions.action_columns of the dataset, for action-conditioned models.
     """
     metrics = {name: RunningMean() for name in ("loss", "acc", "pred_lpips", "gen_time", "dec_time")}
     generator = torch.Generator(device=device).manual_seed(args.seed)
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
-    s = model.config.H
     num_examples = 0
     progress = tqdm(loader, desc="evaluate", unit="batch", file=sys.stderr)
     for batch in progress:
-        x_BTHW = batch["input_ids"].view(-1, args.window_size, s, s).to(device)
+        x_BTHW = batch["tokens"].to(device)
         B, T = x_BTHW.shape[:2]
         targets_BTHW = x_BTHW[:, 1:]
-        actions_BTD, latent_BT = batch_actions(model, batch, columns, device, args)
+        actions_BTD, latent_BT = batch_actions(model, batch, device, args)
 
         _synchronize(device)
         start = time.perf_counter()
         with autocast:
-            samples_BTHW, logits_BVFTHW = model.teacher_forced(x_BTHW, args.maskgit_steps, args.temperature,
-                                                               args.unmask_mode, generator=generator,
-                                                               actions=actions_BTD, latent_actions=latent_BT)
+            samples_BTHW, logits_BVFTHW = teacher_forced(model, x_BTHW, args.maskgit_steps, args.temperature,
+                                                         args.unmask_mode, generator=generator,
+                                                         actions=actions_BTD, latent_actions=latent_BT)
         _synchronize(device)
         metrics["gen_time"].update(time.perf_counter() - start, B * (T - 1))
 
@@ -229,12 +228,12 @@ def decoded_psnr(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tens
 
 
 @torch.no_grad()
-def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device, scorer: FrameScorer,
-               columns) -> float:
+def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
+               scorer: FrameScorer) -> float:
     """Genie's delta-PSNR: mean PSNR of frames generated with the ground truth's latent actions minus that with
     uniformly random latent actions, over the frames after the config's num_prompt_frames (see the module doc).
     Real action inputs, if the model also has them, stay prompt-only in both runs."""
-    P, K, s = model.config.num_prompt_frames, model.config.num_latent_actions, model.config.H
+    P, K = model.config.num_prompt_frames, model.config.num_latent_actions
     if P >= args.window_size:
         raise EvaluationError(f"delta_psnr: the checkpoint's num_prompt_frames {P} leaves no frame to generate in "
                               f"windows of {args.window_size} frames")
@@ -247,9 +246,9 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
     for batch in tqdm(loader, desc="delta_psnr", unit="batch", file=sys.stderr):
-        x_BTHW = batch["input_ids"].view(-1, args.window_size, s, s).to(device)
+        x_BTHW = batch["tokens"].to(device)
         B, T = x_BTHW.shape[:2]
-        actions_BTD, latent_BT = batch_actions(model, batch, columns, device, args)
+        actions_BTD, latent_BT = batch_actions(model, batch, device, args)
         if actions_BTD is not None:
             actions_BTD = actions_BTD.clone()
             actions_BTD[:, P:] = float("nan")  # unknown after the prompt
@@ -258,8 +257,8 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
         gt_NHW = x_BTHW[:, P:].flatten(0, 1)
         for played_BT, generator, mean in zip((latent_BT, random_BT), generators, psnrs):
             with autocast:
-                tokens_BTHW, _ = model.generate(x_BTHW[:, :P], T - P, generator=generator, actions=actions_BTD,
-                                                latent_actions=played_BT, **kwargs)
+                tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, generator=generator, actions=actions_BTD,
+                                          latent_actions=played_BT, **kwargs)
             frame_psnr = decoded_psnr(scorer, tokens_BTHW[:, P:].flatten(0, 1), gt_NHW)
             mean.update(frame_psnr.sum().item(), len(frame_psnr))
     return psnrs[0].mean - psnrs[1].mean
@@ -328,7 +327,8 @@ def run(args: argparse.Namespace) -> dict:
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
                               filter_overlaps=True)
     check_compatible(model, dataset, args.window_size)
-    columns = action_columns(model.config, dataset) if model.config.uses_actions else None
+    if model.config.uses_actions:
+        check_action_streams(model.config, dataset)
     num_windows = len(dataset) if args.max_examples is None else min(args.max_examples, len(dataset))
     loader = DataLoader(Subset(dataset, range(num_windows)), batch_size=args.batch_size, shuffle=False)
     logger.info("evaluating %d windows of %s with %s on %s", num_windows, args.val_data_dir, args.checkpoint_dir,
@@ -344,11 +344,11 @@ def run(args: argparse.Namespace) -> dict:
                                   f"decoding frames.") from None
     outputs = [] if args.save_outputs_dir else None
     with torch.no_grad():
-        result = evaluate(model, loader, args, device, scorer, outputs, columns)
+        result = evaluate(model, loader, args, device, scorer, outputs)
         if model.config.num_latent_actions:
             if scorer is None:
                 logger.warning("--skip_lpips: nothing is decoded, so delta_psnr is null")
-            result["delta_psnr"] = None if scorer is None else delta_psnr(model, loader, args, device, scorer, columns)
+            result["delta_psnr"] = None if scorer is None else delta_psnr(model, loader, args, device, scorer)
             result.update(latent_action_probe(dataset, args.train_data_dir, args.stride))
     if outputs is not None:
         save_outputs(args.save_outputs_dir, outputs, dataset, args.window_size)

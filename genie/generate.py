@@ -29,9 +29,11 @@ from einops import rearrange
 from tqdm.auto import tqdm
 
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
-from genie.actions import LATENT_ACTION_NAME, action_columns, split_actions
 from common.config import ConfigError
-from genie.st_mask_git import CheckpointError, STMaskGIT
+from common.errors import CheckpointError
+from genie.actions import LATENT_ACTION_NAME, check_action_streams, stack_streams, window_actions
+from genie.inference import generate as generate_frames, teacher_forced
+from genie.model import STMaskGIT
 
 logger = logging.getLogger("genie.generate")
 
@@ -131,22 +133,19 @@ def check_compatible(model: STMaskGIT, dataset: RawTokenDataset, args) -> None:
 
 def load_windows(dataset: RawTokenDataset, indices, s: int) -> torch.Tensor:
     """Ground-truth windows (B, T, H, W) int64."""
-    windows = [dataset[i]["input_ids"] for i in indices]
-    return rearrange(torch.stack(windows), "b (t h w) -> b t h w", t=dataset.window_size, h=s, w=s)
+    return torch.stack([dataset[i]["tokens"] for i in indices])
 
 
-def load_actions(dataset: RawTokenDataset, indices, model: STMaskGIT, columns):
+def load_actions(dataset: RawTokenDataset, indices, model: STMaskGIT, use_latent: bool):
     """The windows' action rows for the model: (real actions (B, T, D) or None, latent ids (B, T) or None).
 
     Latent ids are only required when the model needs them from the data (no --latent_actions): a dataset without
     actions/latent_action.bin gives "no action" (id K) for the prompt otherwise.
     """
-    if columns is None:
+    if not model.config.uses_actions:
         return None, None
-    real, latent = columns
-    all_BTA = torch.stack([dataset[i]["actions"] for i in indices]) if dataset.action_names else None
-    actions_BTD, latent_BT = split_actions(all_BTA, (real, latent), model.config.num_latent_actions,
-                                           str(dataset.data_dir / "actions"))
+    actions_BTD, latent_BT = window_actions(model.config, stack_streams([dataset[i]["actions"] for i in indices]),
+                                            use_latent, str(dataset.data_dir / "actions"))
     if model.config.num_latent_actions and latent_BT is None:
         latent_BT = torch.full((len(indices), dataset.window_size), model.config.num_latent_actions)
     return actions_BTD, latent_BT
@@ -161,11 +160,11 @@ def predict(model: STMaskGIT, gt_BTHW: torch.Tensor, args, generator: torch.Gene
     generated frames' latent rows are the played ids.
     """
     kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
-                  use_cache=True, generator=generator, actions=actions_BTD, latent_actions=latent_BT)
+                  generator=generator, actions=actions_BTD, latent_actions=latent_BT)
     P, T = args.num_prompt_frames, gt_BTHW.shape[1]
     if args.teacher_force_time:
         # All frames 1..T-1 from their ground-truth past in one cached pass per MaskGIT step; keep P..T-1.
-        samples_BTHW, _ = model.teacher_forced(gt_BTHW, **kwargs)
+        samples_BTHW, _ = teacher_forced(model, gt_BTHW, **kwargs)
         return samples_BTHW[:, P - 1:]
     control = args.actions_from_data or args.latent_actions is not None
     if args.latent_actions is not None:
@@ -177,7 +176,7 @@ def predict(model: STMaskGIT, gt_BTHW: torch.Tensor, args, generator: torch.Gene
             actions_BTD = actions_BTD.clone()
             actions_BTD[:, P:] = float("nan")
         kwargs.update(actions=actions_BTD, latent_actions=latent_BT)
-    tokens_BTHW, _ = model.generate(gt_BTHW[:, :P], T - P, control=control, **kwargs)
+    tokens_BTHW, _ = generate_frames(model, gt_BTHW[:, :P], T - P, control=control, **kwargs)
     return tokens_BTHW[:, P:]
 
 
@@ -206,8 +205,8 @@ def generate(args) -> dict:
     generator = torch.Generator(device).manual_seed(args.seed)
     K = model.config.num_latent_actions
     # the latent ids come from the data unless they are played
-    columns = (action_columns(model.config, dataset, require_latent=args.latent_actions is None)
-               if model.config.uses_actions else None)
+    use_latent = (check_action_streams(model.config, dataset, require_latent=args.latent_actions is None)
+                  if model.config.uses_actions else False)
 
     outputs, latent_outputs, seconds = [], [], 0.0
     indices = list(range(args.example_ind, args.example_ind + args.num_examples * args.example_stride,
@@ -216,7 +215,7 @@ def generate(args) -> dict:
         batch_indices = indices[a:a + args.batch_size]
         gt_BTHW = load_windows(dataset, batch_indices, s).to(device)
         actions_BTD, latent_BT = (x if x is None else x.to(device)
-                                  for x in load_actions(dataset, batch_indices, model, columns))
+                                  for x in load_actions(dataset, batch_indices, model, use_latent))
         t0 = time.perf_counter()
         pred_BTHW = predict(model, gt_BTHW, args, generator, actions_BTD, latent_BT)
         if device.type == "cuda":

@@ -1,9 +1,12 @@
 """MaskGIT training collator: batch windows, corrupt and mask them the way the published GENIE models were trained."""
+from dataclasses import dataclass, fields
+from typing import Optional
+
 import torch
-from einops import rearrange
 from torch.utils.data import get_worker_info
 
-from genie.config import GenieConfig
+from genie.actions import stack_streams, window_actions
+from genie.config import GenieConfig, TrainingRecipe
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.schedule import cosine_schedule
 
@@ -39,12 +42,34 @@ def _two_stream_target_masks(B: int, T: int, H: int, W: int, partial_ratio: floa
     return mask_BTHW
 
 
-def get_maskgit_collator(config: GenieConfig, seed=None):
-    """Return collate_fn(features) -> {"input_ids": (B, T*S), "labels": (B, T*S)} int64 (+ "actions" (B, T, D),
-    + "target_ids" (B, T*S) for two-stream batches).
+@dataclass
+class MaskGITBatch:
+    """A collated training batch; token ids are int64 (B, T, H, W)."""
+    input_ids: torch.Tensor  # what the model sees: corrupted, the mask token where it is to predict
+    labels: torch.Tensor  # the clean tokens
+    target_ids: Optional[torch.Tensor] = None  # two-stream batches: every frame t >= 1 a (partly) masked target
+    actions: Optional[torch.Tensor] = None  # (B, T, D) float: the config's real action streams
+    latent_actions: Optional[torch.Tensor] = None  # (B, T) int64: latent action ids
 
-    features: items of RawTokenDataset (input_ids (T*S,) int64, optional actions (T, D)). labels are the clean
-    tokens. input_ids are corrupted as in training of the published models:
+    def __post_init__(self):
+        if self.input_ids.dim() != 4 or self.labels.shape != self.input_ids.shape:
+            raise ValueError(f"MaskGITBatch: input_ids and labels must both be (B, T, H, W); got "
+                             f"{tuple(self.input_ids.shape)} and {tuple(self.labels.shape)}")
+
+    def to(self, device, non_blocking: bool = False) -> "MaskGITBatch":
+        return MaskGITBatch(**{f.name: None if getattr(self, f.name) is None else
+                               getattr(self, f.name).to(device, non_blocking=non_blocking) for f in fields(self)})
+
+    def __len__(self) -> int:
+        return self.input_ids.shape[0]
+
+
+def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] = None, seed=None):
+    """Return collate_fn(items) -> MaskGITBatch.
+
+    items: RawTokenDataset items (tokens (T, H, W) int64, actions: name -> (T, k)); the batch's actions are the
+    streams the config's action inputs use (genie/actions.py). labels are the clean tokens. input_ids are
+    corrupted as in training of the published models (recipe: genie.config.TrainingRecipe, None: the published one):
     1. every factor of every token is replaced by a random factor value with probability max_corrupt_rate * u,
        u ~ U(0, 1) once per batch;
     2. with probability non_mlm_ratio (closer to autoregressive inference), frames from first_masked_frame ~
@@ -52,19 +77,20 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
        starts at U(0.25, 1) and shrinks by a U(0.9, 1) factor per frame; otherwise first_masked_frame = 1;
     3. each frame >= first_masked_frame of each example masks each token with probability cosine_schedule(U(0, 1))
        (redrawn when the whole batch got no mask); masked tokens become config.mask_token_id. Frame 0 is never masked.
-    4. opt-in (config.teacher_forced_ratio > 0, not in the published recipe): that fraction of the examples is
+    4. opt-in (recipe.whole_frame_mask_ratio > 0, not in the published recipe): that fraction of the examples is
        instead masked the way the challenge evaluates: every 2nd or 3rd frame is fully masked (`_whole_frame_masks`),
        the others keep their tokens with step 1's light corruption only (not step 2's). Each masked frame is then
        predicted from whole earlier frames, nothing of itself revealed, which the published masking rarely shows a
        model (its frames are partly masked, and the frames before them too).
-    5. opt-in (config.two_stream_ratio > 0): that fraction of the batches is instead two-stream: input_ids are the
-       whole windows with step 1's light corruption (the context) and an extra "target_ids" (B, T*S) holds every
-       frame t >= 1 as a target, fully masked or, for config.two_stream_partial_ratio of them, partly
-       (`_two_stream_target_masks`); STMaskGIT.forward predicts target t from context frames < t.
+    5. opt-in (recipe.two_stream_ratio > 0): that fraction of the batches is instead two-stream: input_ids are the
+       whole windows with step 1's light corruption (the context) and target_ids holds every frame t >= 1 as a
+       target, fully masked or, for recipe.two_stream_partial_ratio of them, partly (`_two_stream_target_masks`);
+       genie/objectives.py predicts target t from context frames < t.
 
     seed: None draws from torch's global RNG (seeded per DataLoader worker and by accelerate's set_seed); an int
     uses a private generator, seeded with seed + worker id inside DataLoader workers, so results are reproducible.
     """
+    recipe = recipe or TrainingRecipe()
     generators = {}
 
     def generator():
@@ -76,35 +102,34 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
             generators[key] = torch.Generator().manual_seed(seed + key)
         return generators[key]
 
-    def collate_fn(features) -> dict:
+    def collate_fn(items) -> MaskGITBatch:
         g = generator()
         T, H, W, F, V = config.T, config.H, config.W, config.num_factored_vocabs, config.factored_vocab_size
-        input_ids = torch.stack([torch.as_tensor(ex["input_ids"]) for ex in features]).long()
-        B = len(features)
-        if input_ids.shape[1] != T * config.S:
-            raise ValueError(f"maskgit collator: windows have {input_ids.shape[1]} tokens but the model config "
-                             f"expects T*S = {T}*{config.S} = {T * config.S}; check window_size and the dataset's s")
-        if input_ids.min() < 0 or input_ids.max() >= config.image_vocab_size:
+        labels_BTHW = torch.stack([torch.as_tensor(item["tokens"]) for item in items]).long()
+        B = len(items)
+        if labels_BTHW.shape[1:] != (T, H, W):
+            raise ValueError(f"maskgit collator: windows are {tuple(labels_BTHW.shape[1:])} tokens but the model "
+                             f"config expects (T, H, W) = ({T}, {H}, {W}); check window_size and the dataset's s")
+        if labels_BTHW.min() < 0 or labels_BTHW.max() >= config.image_vocab_size:
             raise ValueError(f"maskgit collator: token ids must lie in [0, image_vocab_size="
-                             f"{config.image_vocab_size}), got range [{int(input_ids.min())}, {int(input_ids.max())}]")
-        labels_BTHW = rearrange(input_ids, "b (t h w) -> b t h w", t=T, h=H, w=W)
+                             f"{config.image_vocab_size}), got range [{int(labels_BTHW.min())}, "
+                             f"{int(labels_BTHW.max())}]")
+        actions_BTD, latent_BT = window_actions(config, stack_streams([item.get("actions", {}) for item in items]))
         x_BTHWF = factorize_token_ids(labels_BTHW, F, V)
 
         random_BTHWF = torch.randint(0, V, x_BTHWF.shape, generator=g)
-        corrupt_rate = config.max_corrupt_rate * torch.rand((), generator=g)
+        corrupt_rate = recipe.max_corrupt_rate * torch.rand((), generator=g)
         corrupt = torch.rand(x_BTHWF.shape, generator=g) < corrupt_rate
         x_BTHWF = torch.where(corrupt, random_BTHWF, x_BTHWF)
-        if config.two_stream_ratio > 0 and torch.rand((), generator=g) < config.two_stream_ratio:
+        if recipe.two_stream_ratio > 0 and torch.rand((), generator=g) < recipe.two_stream_ratio:
             context_BTHW = unfactorize_token_ids(x_BTHWF, F, V)
             targets_BTHW = context_BTHW.clone()
-            targets_BTHW[_two_stream_target_masks(B, T, H, W, config.two_stream_partial_ratio, g)] = \
+            targets_BTHW[_two_stream_target_masks(B, T, H, W, recipe.two_stream_partial_ratio, g)] = \
                 config.mask_token_id
-            batch = {"input_ids": rearrange(context_BTHW, "b t h w -> b (t h w)"),
-                     "target_ids": rearrange(targets_BTHW, "b t h w -> b (t h w)")}
-            return _with_labels_and_actions(batch, labels_BTHW, features)
-        lightly_corrupted_BTHWF = x_BTHWF.clone() if config.teacher_forced_ratio > 0 else None
+            return MaskGITBatch(context_BTHW, labels_BTHW, targets_BTHW, actions_BTD, latent_BT)
+        lightly_corrupted_BTHWF = x_BTHWF.clone() if recipe.whole_frame_mask_ratio > 0 else None
 
-        if torch.rand((), generator=g) < config.non_mlm_ratio:
+        if torch.rand((), generator=g) < recipe.non_mlm_ratio:
             first_masked_frame = int(torch.randint(config.num_prompt_frames, T, (), generator=g))
             # Later frames are corrupted more: at inference, errors compound over generated frames.
             num_later = T - first_masked_frame
@@ -123,22 +148,11 @@ def get_maskgit_collator(config: GenieConfig, seed=None):
         mask_BTHW = torch.zeros(B, T, H, W, dtype=torch.bool)
         mask_BTHW[:, first_masked_frame:] = mask
         if lightly_corrupted_BTHWF is not None:
-            forced_B = torch.rand(B, generator=g) < config.teacher_forced_ratio
+            forced_B = torch.rand(B, generator=g) < recipe.whole_frame_mask_ratio
             x_BTHWF[forced_B] = lightly_corrupted_BTHWF[forced_B]
             mask_BTHW[forced_B] = _whole_frame_masks(int(forced_B.sum()), T, H, W, g)
         x_BTHW = unfactorize_token_ids(x_BTHWF, F, V)
         x_BTHW[mask_BTHW] = config.mask_token_id
-        return _with_labels_and_actions({"input_ids": rearrange(x_BTHW, "b t h w -> b (t h w)")}, labels_BTHW,
-                                        features)
+        return MaskGITBatch(x_BTHW, labels_BTHW, None, actions_BTD, latent_BT)
 
     return collate_fn
-
-
-def _with_labels_and_actions(batch: dict, labels_BTHW: torch.Tensor, features) -> dict:
-    batch["labels"] = rearrange(labels_BTHW, "b t h w -> b (t h w)")
-    has_actions = ["actions" in ex for ex in features]
-    if any(has_actions):
-        if not all(has_actions):
-            raise ValueError("maskgit collator: some examples have actions and some do not")
-        batch["actions"] = torch.stack([torch.as_tensor(ex["actions"], dtype=torch.float32) for ex in features])
-    return batch

@@ -9,9 +9,11 @@ import torch
 import train
 import visualize
 from data import RawTokenDataset, read_metadata, write_token_dataset
-from genie import GenieConfig, STMaskGIT
+import genie.generate as generate_script
+from genie import GenieConfig, MaskGITBatch, STMaskGIT
 from genie import evaluate as genie_evaluate
-from genie import generate
+from genie.inference import generate, teacher_forced
+from genie.reference import generate_uncached, teacher_forced_uncached
 from lam.probe import button_combination_ids
 from common.config import ConfigError
 
@@ -42,7 +44,7 @@ def make_model(action_dim: int = D, num_latent_actions: int = K, seed: int = 0, 
 
 def random_inputs(model: STMaskGIT, B: int, T: int, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
-    x = torch.randint(0, model.config.image_vocab_size, (B, T, model.h, model.w), generator=g)
+    x = torch.randint(0, model.config.image_vocab_size, (B, T, model.config.H, model.config.W), generator=g)
     actions = torch.randn(B, T, model.config.action_dim, generator=g) if model.config.action_dim else None
     latent = torch.randint(0, K, (B, T), generator=g) if model.config.num_latent_actions else None
     return x, actions, latent
@@ -117,27 +119,26 @@ def test_action_config_and_weights_round_trip(tmp_path):
     loaded = STMaskGIT.from_pretrained(tmp_path / "ckpt")
     x, actions, latent = random_inputs(model, 2, 5)
     with torch.no_grad():
-        torch.testing.assert_close(loaded.compute_logits(x, actions, latent), model.compute_logits(x, actions, latent))
+        torch.testing.assert_close(loaded.logits(x, actions, latent), model.logits(x, actions, latent))
 
 
 # ------------------------------------------------------------------ the prompt-only rule
 @pytest.mark.parametrize("use_cache", [True, False])
 def test_teacher_forced_target_sees_only_earlier_action_rows(use_cache):
     model = make_model()
+    run = teacher_forced if use_cache else teacher_forced_uncached
     x, actions, latent = random_inputs(model, 2, 5)
-    _, logits = model.teacher_forced(x, maskgit_steps=1, use_cache=use_cache, actions=actions, latent_actions=latent)
+    _, logits = run(model, x, maskgit_steps=1, actions=actions, latent_actions=latent)
     for t in range(1, 5):
         later_actions, later_latent = perturbed(actions, latent, t, seed=t)
-        _, logits2 = model.teacher_forced(x, maskgit_steps=1, use_cache=use_cache, actions=later_actions,
-                                          latent_actions=later_latent)
+        _, logits2 = run(model, x, maskgit_steps=1, actions=later_actions, latent_actions=later_latent)
         torch.testing.assert_close(logits2[:, :, :, t - 1], logits[:, :, :, t - 1])  # rows >= t: no effect on t
         if t < 4:  # ... but they do change later targets
             assert not torch.allclose(logits2[:, :, :, t:], logits[:, :, :, t:], atol=1e-3)
     # the real action of frame t-1 drives target t
     prev_actions, _ = perturbed(actions, latent, 2, seed=9)
     prev_actions[:, 3:] = actions[:, 3:]
-    _, logits3 = model.teacher_forced(x, maskgit_steps=1, use_cache=use_cache, actions=prev_actions,
-                                      latent_actions=latent)
+    _, logits3 = run(model, x, maskgit_steps=1, actions=prev_actions, latent_actions=latent)
     assert not torch.allclose(logits3[:, :, :, 2], logits[:, :, :, 2], atol=1e-3)  # target 3 uses row 2
 
 
@@ -148,8 +149,8 @@ def test_generation_ignores_actions_after_the_prompt_unless_controlled():
     later_actions, later_latent = perturbed(actions, latent, P, seed=1)
 
     def run(a, la, **kw):
-        return model.generate(x[:, :P], 3, maskgit_steps=2, temperature=1.0, actions=a, latent_actions=la,
-                              generator=torch.Generator().manual_seed(5), **kw)
+        return generate(model, x[:, :P], 3, maskgit_steps=2, temperature=1.0, actions=a, latent_actions=la,
+                        generator=torch.Generator().manual_seed(5), **kw)
 
     tokens, logits = run(actions, latent)
     tokens2, logits2 = run(later_actions, later_latent)
@@ -172,13 +173,13 @@ def test_generation_ignores_actions_after_the_prompt_unless_controlled():
 def test_cached_equals_uncached_with_actions(action_dim, num_latent):
     model = make_model(action_dim, num_latent, seed=1, qk_norm=True)
     x, actions, latent = random_inputs(model, 2, 5, seed=1)
-    runs = [model.teacher_forced(x, 2, 1.0, use_cache=c, generator=torch.Generator().manual_seed(3),
-                                 actions=actions, latent_actions=latent) for c in (True, False)]
+    runs = [run(model, x, 2, 1.0, generator=torch.Generator().manual_seed(3), actions=actions,
+                latent_actions=latent) for run in (teacher_forced, teacher_forced_uncached)]
     torch.testing.assert_close(runs[0][1], runs[1][1], atol=1e-5, rtol=1e-5)
     assert torch.equal(runs[0][0], runs[1][0])
     for control in (False, True):
-        runs = [model.generate(x[:, :2], 3, 2, 1.0, use_cache=c, generator=torch.Generator().manual_seed(4),
-                               actions=actions, latent_actions=latent, control=control) for c in (True, False)]
+        runs = [run(model, x[:, :2], 3, 2, 1.0, generator=torch.Generator().manual_seed(4), actions=actions,
+                    latent_actions=latent, control=control) for run in (generate, generate_uncached)]
         torch.testing.assert_close(runs[0][1], runs[1][1], atol=1e-5, rtol=1e-5)
         assert torch.equal(runs[0][0], runs[1][0])
 
@@ -190,30 +191,29 @@ def test_latent_action_changes_the_generated_frame():
     for action in (0, 3):
         played = latent.clone()
         played[:, 2:] = action
-        logits.append(model.generate(x[:, :2], 3, maskgit_steps=1, latent_actions=played, control=True)[1])
+        logits.append(generate(model, x[:, :2], 3, maskgit_steps=1, latent_actions=played, control=True)[1])
     assert not torch.allclose(logits[0][:, :, :, 0], logits[1][:, :, :, 0], atol=1e-3)
 
 
 def test_training_forward_uses_actions_and_drops_them():
     x, actions, latent = random_inputs(make_model(), 2, 5)
-    flat = x.flatten(1)
     for dropout, expect_effect in ((0.0, True), (1.0, False)):
         model = make_model(action_dropout=dropout).train()
-        with_actions = model(flat, flat, actions=actions, latent_actions=latent)
-        without = model(flat, flat)
-        assert torch.allclose(with_actions.logits, without.logits) != expect_effect
+        with_actions = model.logits(x, actions=actions, latent_actions=latent)
+        without = model.logits(x)
+        assert torch.allclose(with_actions, without) != expect_effect
     model = make_model(action_dropout=0.0).train()
     masked = x.clone()
     masked[:, 1:] = model.mask_token_id  # the loss counts masked tokens only
-    model(masked.flatten(1), flat, actions=actions, latent_actions=latent).loss.backward()
+    model(MaskGITBatch(masked, x, actions=actions, latent_actions=latent)).loss.backward()
     assert model.action_cond.action_proj.weight.grad.abs().sum() > 0
     assert model.action_cond.latent_action_embed.weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="actions must be float"):
-        model(flat, flat, actions=actions[:, :, :2])
+        model(MaskGITBatch(x, x, actions=actions[:, :, :2]))
     with pytest.raises(ValueError, match="latent action ids must be in"):
-        model(flat, flat, latent_actions=latent + K + 1)
+        model(MaskGITBatch(x, x, latent_actions=latent + K + 1))
     with pytest.raises(ValueError, match="no action inputs"):
-        make_model(0, 0).generate(x[:, :2], 1, actions=actions)
+        generate(make_model(0, 0), x[:, :2], 1, actions=actions)
 
 
 # ------------------------------------------------------------------ scripts
@@ -278,7 +278,7 @@ def latent_ckpt(action_data):
 
 def test_generate_plays_latent_actions_and_writes_them(action_data, latent_ckpt, tmp_path):
     def run(out, *extra):
-        generate.main(["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(latent_ckpt),
+        generate_script.main(["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(latent_ckpt),
                        "--output_dir", str(out), "--window_size", "4", "--num_prompt_frames", "2", "--stride", "1",
                        "--num_examples", "3", "--device", "cpu", *extra])
         meta = read_metadata(out)

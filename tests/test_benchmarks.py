@@ -20,7 +20,8 @@ def test_bench_train_compare_runs_fp32_and_both_bf16_attention_paths(capsys):
     out = capsys.readouterr().out
     assert "fp32:" in out and "bf16 (fused attention):" in out and "bf16 (written-out temporal attention):" in out
     assert "bf16 (written-out temporal attention) vs fp32:" in out
-    assert SelfAttention.cpu_bf16_math_path  # left on for the rest of the process
+    # the comparison sets the path per model, no global state: a fresh attention layer is on the default path
+    assert SelfAttention(d_model=8, num_heads=2).cpu_bf16_math
 
 
 def test_bench_train_readout_compare_runs_both_readouts(capsys):

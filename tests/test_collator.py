@@ -5,12 +5,13 @@ import numpy as np
 import pytest
 import torch
 
-from data import RawTokenDataset, write_token_dataset
-from genie.masking import get_maskgit_collator
-from genie.config import GenieConfig
+from data import RawTokenDataset, TokenDatasetError, write_token_dataset
+from genie.config import GenieConfig, TrainingRecipe
 from genie.factorization import factorize_token_ids
+from genie.masking import MaskGITBatch, get_maskgit_collator
 
 T, S, VOCAB = 6, 16, 64  # 2 factors of 8
+H = W = 4
 
 
 def tiny_config(**overrides):
@@ -18,37 +19,43 @@ def tiny_config(**overrides):
     return GenieConfig(**{**fields, **overrides})
 
 
+def action_config(**overrides):
+    """A config whose model reads the 3-wide action stream "a" of make_features(actions=True)."""
+    return tiny_config(action_names=["a"], action_dim=3, **overrides)
+
+
 def make_features(batch_size, seed=0, actions=False):
     g = torch.Generator().manual_seed(seed)
     features = []
     for _ in range(batch_size):
-        x = torch.randint(0, VOCAB, (T * S,), generator=g)
-        feature = {"input_ids": x, "labels": x, "attention_mask": torch.ones_like(x), "start_ind": 0}
+        x = torch.randint(0, VOCAB, (T, H, W), generator=g)
+        feature = {"tokens": x, "actions": {}}
         if actions:
-            feature["actions"] = torch.randn(T, 3, generator=g)
+            feature["actions"]["a"] = torch.randn(T, 3, generator=g)
         features.append(feature)
     return features
 
 
 def frames(x):
-    """(B, T*S) -> (B, T, S)"""
-    return x.view(len(x), T, S)
+    """(B, T, H, W) -> (B, T, S)"""
+    return x.flatten(2)
 
 
 @pytest.mark.parametrize("non_mlm_ratio", [0.0, 0.5, 1.0])
 def test_invariants(non_mlm_ratio):
-    config = tiny_config(non_mlm_ratio=non_mlm_ratio)
-    collate = get_maskgit_collator(config, seed=0)
+    config = tiny_config()
+    collate = get_maskgit_collator(config, TrainingRecipe(non_mlm_ratio=non_mlm_ratio), seed=0)
     for i in range(30):
         features = make_features(4, seed=i)
-        originals = torch.stack([f["input_ids"] for f in features]).clone()
+        originals = torch.stack([f["tokens"] for f in features]).clone()
         batch = collate(features)
-        assert set(batch) == {"input_ids", "labels"}
-        assert batch["input_ids"].dtype == batch["labels"].dtype == torch.int64
-        assert batch["input_ids"].shape == batch["labels"].shape == (4, T * S)
-        assert torch.equal(batch["labels"], originals)
-        assert torch.equal(torch.stack([f["input_ids"] for f in features]), originals)  # features left intact
-        x = frames(batch["input_ids"])
+        assert isinstance(batch, MaskGITBatch)
+        assert batch.target_ids is None and batch.actions is None and batch.latent_actions is None
+        assert batch.input_ids.dtype == batch.labels.dtype == torch.int64
+        assert batch.input_ids.shape == batch.labels.shape == (4, T, H, W)
+        assert torch.equal(batch.labels, originals)
+        assert torch.equal(torch.stack([f["tokens"] for f in features]), originals)  # features left intact
+        x = frames(batch.input_ids)
         masked = x == config.mask_token_id
         assert masked.any()
         assert not masked[:, 0].any()
@@ -58,12 +65,12 @@ def test_invariants(non_mlm_ratio):
 
 
 def test_without_corruption_only_masks_change():
-    config = tiny_config(max_corrupt_rate=0.0, non_mlm_ratio=0.0)
-    collate = get_maskgit_collator(config, seed=1)
+    config = tiny_config()
+    collate = get_maskgit_collator(config, TrainingRecipe(max_corrupt_rate=0.0, non_mlm_ratio=0.0), seed=1)
     masked_fraction = []
     for i in range(200):
         batch = collate(make_features(8, seed=i))
-        x, labels = frames(batch["input_ids"]), frames(batch["labels"])
+        x, labels = frames(batch.input_ids), frames(batch.labels)
         masked = x == config.mask_token_id
         assert torch.equal(x[~masked], labels[~masked])
         masked_fraction.append(masked[:, 1:].float().mean().item())
@@ -72,28 +79,28 @@ def test_without_corruption_only_masks_change():
 
 
 def test_random_corruption_rate():
-    config = tiny_config(max_corrupt_rate=1.0, non_mlm_ratio=0.0)
-    collate = get_maskgit_collator(config, seed=2)
+    config = tiny_config()
+    collate = get_maskgit_collator(config, TrainingRecipe(max_corrupt_rate=1.0, non_mlm_ratio=0.0), seed=2)
     changed = []
     for i in range(400):
         batch = collate(make_features(2, seed=i))
         # Frame 0 is never masked, so it shows the random corruption alone.
-        f_in = factorize_token_ids(frames(batch["input_ids"])[:, 0], 2, 8)
-        f_label = factorize_token_ids(frames(batch["labels"])[:, 0], 2, 8)
+        f_in = factorize_token_ids(frames(batch.input_ids)[:, 0], 2, 8)
+        f_label = factorize_token_ids(frames(batch.labels)[:, 0], 2, 8)
         changed.append((f_in != f_label).float().mean().item())
     # A factor is redrawn with probability u (u ~ U(0, 1) per batch) and lands on a new value with 7/8.
     assert abs(np.mean(changed) - 0.5 * 7 / 8) < 0.05
 
 
 def test_autoregressive_corruption():
-    config = tiny_config(max_corrupt_rate=0.0, non_mlm_ratio=1.0, T=8, num_prompt_frames=3)
-    collate = get_maskgit_collator(config, seed=3)
+    config = tiny_config(T=8, num_prompt_frames=3)
+    collate = get_maskgit_collator(config, TrainingRecipe(max_corrupt_rate=0.0, non_mlm_ratio=1.0), seed=3)
     first_frames, wrong_rate = [], []
     for i in range(100):
         g = torch.Generator().manual_seed(i)
         labels = torch.randint(0, VOCAB, (4, 8, S), generator=g)
-        batch = collate([{"input_ids": x.flatten()} for x in labels])
-        x = batch["input_ids"].view(4, 8, S)
+        batch = collate([{"tokens": x.view(8, H, W), "actions": {}} for x in labels])
+        x = batch.input_ids.view(4, 8, S)
         changed = (x != labels).any(dim=(0, 2))
         first = int(changed.float().argmax())
         first_frames.append(first)
@@ -107,31 +114,34 @@ def test_autoregressive_corruption():
 def test_deterministic_with_seed():
     config = tiny_config()
     outputs = [get_maskgit_collator(config, seed=seed)(make_features(3)) for seed in (5, 5, 6)]
-    assert torch.equal(outputs[0]["input_ids"], outputs[1]["input_ids"])
-    assert not torch.equal(outputs[0]["input_ids"], outputs[2]["input_ids"])
+    assert torch.equal(outputs[0].input_ids, outputs[1].input_ids)
+    assert not torch.equal(outputs[0].input_ids, outputs[2].input_ids)
     torch.manual_seed(0)
     a = get_maskgit_collator(config)(make_features(3))
     torch.manual_seed(0)
     b = get_maskgit_collator(config)(make_features(3))
-    assert torch.equal(a["input_ids"], b["input_ids"])
+    assert torch.equal(a.input_ids, b.input_ids)
 
 
 def test_actions_stacked():
     features = make_features(3, actions=True)
-    batch = get_maskgit_collator(tiny_config(), seed=0)(features)
-    assert batch["actions"].shape == (3, T, 3) and batch["actions"].dtype == torch.float32
-    assert torch.equal(batch["actions"][2], features[2]["actions"])
-    del features[1]["actions"]
-    with pytest.raises(ValueError, match="some examples have actions"):
-        get_maskgit_collator(tiny_config(), seed=0)(features)
+    batch = get_maskgit_collator(action_config(), seed=0)(features)
+    assert batch.actions.shape == (3, T, 3) and batch.actions.dtype == torch.float32
+    assert torch.equal(batch.actions[2], features[2]["actions"]["a"])
+    assert batch.latent_actions is None
+    # a video-only model gets no actions even when the windows have them
+    assert get_maskgit_collator(tiny_config(), seed=0)(features).actions is None
+    del features[1]["actions"]["a"]
+    with pytest.raises(TokenDatasetError, match="a.bin"):
+        get_maskgit_collator(action_config(), seed=0)(features)
 
 
 def test_bad_windows_rejected():
     collate = get_maskgit_collator(tiny_config(), seed=0)
-    with pytest.raises(ValueError, match="T\\*S"):
-        collate([{"input_ids": torch.zeros(T * S - 1, dtype=torch.long)}])
+    with pytest.raises(ValueError, match="window_size"):
+        collate([{"tokens": torch.zeros(T - 1, H, W, dtype=torch.long), "actions": {}}])
     with pytest.raises(ValueError, match="image_vocab_size"):
-        collate([{"input_ids": torch.full((T * S,), VOCAB)}])
+        collate([{"tokens": torch.full((T, H, W), VOCAB), "actions": {}}])
 
 
 def test_with_dataset_and_dataloader(tmp_path):
@@ -139,20 +149,23 @@ def test_with_dataset_and_dataloader(tmp_path):
     write_token_dataset(tmp_path, rng.integers(0, VOCAB, (40, 4, 4)), actions={"a": rng.normal(size=(40, 2))},
                         metadata={"vocab_size": VOCAB})
     ds = RawTokenDataset(tmp_path, window_size=T, stride=2)
-    loader = torch.utils.data.DataLoader(ds, batch_size=5, collate_fn=get_maskgit_collator(tiny_config(), seed=0))
+    config = tiny_config(action_names=["a"], action_dim=2)
+    loader = torch.utils.data.DataLoader(ds, batch_size=5, collate_fn=get_maskgit_collator(config, seed=0))
     batch = next(iter(loader))
-    assert batch["input_ids"].shape == (5, T * S) and batch["actions"].shape == (5, T, 2)
-    assert torch.equal(batch["labels"][3], ds[3]["input_ids"])
+    assert batch.input_ids.shape == (5, T, H, W) and batch.actions.shape == (5, T, 2)
+    assert torch.equal(batch.labels[3], ds[3]["tokens"])
+    assert torch.equal(batch.actions[3], ds[3]["actions"]["a"])
 
 
 @pytest.mark.parametrize("non_mlm_ratio", [0.0, 1.0])
 def test_teacher_forced_examples_mask_whole_frames_over_clean_context(non_mlm_ratio):
-    config = tiny_config(teacher_forced_ratio=1.0, max_corrupt_rate=0.0, non_mlm_ratio=non_mlm_ratio)
-    collate = get_maskgit_collator(config, seed=0)
+    config = tiny_config()
+    recipe = TrainingRecipe(whole_frame_mask_ratio=1.0, max_corrupt_rate=0.0, non_mlm_ratio=non_mlm_ratio)
+    collate = get_maskgit_collator(config, recipe, seed=0)
     first_targets = set()
     for step in range(20):
         batch = collate(make_features(4, seed=step))
-        x, labels = frames(batch["input_ids"]), frames(batch["labels"])
+        x, labels = frames(batch.input_ids), frames(batch.labels)
         masked = x == config.mask_token_id
         per_frame = masked.sum(-1)
         assert ((per_frame == 0) | (per_frame == S)).all(), "a frame is either fully masked or not at all"
@@ -168,12 +181,12 @@ def test_teacher_forced_examples_mask_whole_frames_over_clean_context(non_mlm_ra
     assert first_targets == {1, 2, 3}  # every phase occurs
 
 
-def test_teacher_forced_ratio_mixes_in_published_masking():
-    config = tiny_config(teacher_forced_ratio=0.5)
-    collate = get_maskgit_collator(config, seed=0)
+def test_whole_frame_mask_ratio_mixes_in_published_masking():
+    config = tiny_config()
+    collate = get_maskgit_collator(config, TrainingRecipe(whole_frame_mask_ratio=0.5), seed=0)
     whole, partial = 0, 0
     for step in range(40):
-        per_frame = (frames(collate(make_features(8, seed=step))["input_ids"]) == config.mask_token_id).sum(-1)
+        per_frame = (frames(collate(make_features(8, seed=step)).input_ids) == config.mask_token_id).sum(-1)
         example_is_whole = ((per_frame == 0) | (per_frame == S)).all(dim=1)
         whole += int(example_is_whole.sum())
         partial += int((~example_is_whole).sum())
@@ -182,15 +195,18 @@ def test_teacher_forced_ratio_mixes_in_published_masking():
 
 @pytest.mark.parametrize("partial_ratio", [0.0, 0.5])
 def test_two_stream_batches_keep_a_clean_context_and_mask_every_later_frame(partial_ratio):
-    config = tiny_config(two_stream_ratio=1.0, two_stream_partial_ratio=partial_ratio, max_corrupt_rate=0.0,
-                         non_mlm_ratio=1.0)
-    collate = get_maskgit_collator(config, seed=0)
+    config = action_config()
+    recipe = TrainingRecipe(two_stream_ratio=1.0, two_stream_partial_ratio=partial_ratio, max_corrupt_rate=0.0,
+                            non_mlm_ratio=1.0)
+    collate = get_maskgit_collator(config, recipe, seed=0)
     whole = partly = 0
     for step in range(20):
         features = make_features(4, seed=step, actions=True)
         batch = collate(features)
-        assert set(batch) == {"input_ids", "target_ids", "labels", "actions"}
-        context, targets, labels = frames(batch["input_ids"]), frames(batch["target_ids"]), frames(batch["labels"])
+        assert batch.target_ids is not None and batch.actions is not None and batch.latent_actions is None
+        assert batch.target_ids.shape == batch.input_ids.shape == (4, T, H, W)
+        assert torch.equal(batch.actions, torch.stack([f["actions"]["a"] for f in features]))
+        context, targets, labels = frames(batch.input_ids), frames(batch.target_ids), frames(batch.labels)
         assert torch.equal(context, labels), "the context is whole and, without corruption, clean"
         masked = targets == config.mask_token_id
         assert not masked[:, 0].any() and masked[:, 1:].any(-1).all(), "every frame >= 1 is a target"
@@ -205,17 +221,17 @@ def test_two_stream_batches_keep_a_clean_context_and_mask_every_later_frame(part
 
 
 def test_two_stream_ratio_mixes_batches_and_keeps_light_corruption():
-    config = tiny_config(two_stream_ratio=0.5, max_corrupt_rate=1.0)
-    collate = get_maskgit_collator(config, seed=1)
+    config = tiny_config()
+    collate = get_maskgit_collator(config, TrainingRecipe(two_stream_ratio=0.5, max_corrupt_rate=1.0), seed=1)
     kinds = []
     for step in range(40):
         batch = collate(make_features(2, seed=step))
-        kinds.append("target_ids" in batch)
+        kinds.append(batch.target_ids is not None)
         if kinds[-1]:
-            context = batch["input_ids"]
+            context = batch.input_ids
             assert not (context == config.mask_token_id).any()
             assert (context >= 0).all() and (context < VOCAB).all()
     assert 10 < sum(kinds) < 30
-    assert any(not torch.equal(b["input_ids"], b["labels"]) for b in
-               [collate(make_features(2, seed=s)) for s in range(40)] if "target_ids" in b), \
+    assert any(not torch.equal(b.input_ids, b.labels) for b in
+               [collate(make_features(2, seed=s)) for s in range(40)] if b.target_ids is not None), \
         "the context gets step 1's random corruption"

@@ -17,6 +17,7 @@ from genie import GenieConfig, STMaskGIT
 from genie.evaluate import evaluate, main
 from genie.evaluation import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
                               token_accuracy)
+from genie.inference import teacher_forced
 
 REPO = Path(__file__).resolve().parents[1]
 VOCAB = 64 ** 2
@@ -114,9 +115,10 @@ def test_json_line_metrics_and_saved_outputs(tiny, capsys):
 
     # CE of the first-step logits, recomputed here with the public model API (independent of the RNG)
     dataset = RawTokenDataset(tiny.data, window_size=8, stride=3, filter_overlaps=True)
-    windows = torch.stack([dataset[i]["input_ids"].view(8, 4, 4) for i in range(5)])
+    windows = torch.stack([dataset[i]["tokens"] for i in range(5)])
+    assert windows.shape == (5, 8, 4, 4)
     model = STMaskGIT.from_pretrained(tiny.ckpt)
-    _, logits = model.teacher_forced(windows, maskgit_steps=2)
+    _, logits = teacher_forced(model, windows, maskgit_steps=2)
     assert result["loss"] == pytest.approx(factored_cross_entropy(logits, windows[:, 1:]).mean().item(), rel=1e-5)
 
     # saved layout: per window frame 0 | predictions 1..7 | ground truth 1..7; acc matches the saved predictions

@@ -6,9 +6,8 @@ import pytest
 import torch
 
 from data import RawTokenDataset, read_metadata
-from genie import generate
-from genie.config import GenieConfig
-from genie.st_mask_git import STMaskGIT
+import genie.generate as generate  # the script module (genie.generate, the function, is genie.inference.generate)
+from genie import GenieConfig, STMaskGIT
 from tests.test_train import TINY, make_token_dataset
 
 T, P, S_SIDE = TINY["T"], 2, 4  # window 4 frames, 2 prompt frames, 4x4 tokens
@@ -40,7 +39,7 @@ def read_examples(out):
 
 def ground_truth(setup, indices):
     ds = RawTokenDataset(setup / "val", window_size=T, stride=1)
-    return np.stack([ds[i]["input_ids"].numpy().reshape(T, S_SIDE, S_SIDE) for i in indices])
+    return np.stack([ds[i]["tokens"].numpy() for i in indices])
 
 
 def test_output_layout(setup, tmp_path):
@@ -58,7 +57,7 @@ def test_output_layout(setup, tmp_path):
     # The output is itself a token dataset: one segment per example, so windows never mix two examples.
     windows = RawTokenDataset(tmp_path, window_size=2 * T - P, stride=1)
     assert len(windows) == 5
-    np.testing.assert_array_equal(windows[4]["input_ids"].numpy(), examples[4].reshape(-1))
+    np.testing.assert_array_equal(windows[4]["tokens"].numpy(), examples[4])
 
 
 def test_teacher_forcing_predicts_each_frame_from_ground_truth(setup, tmp_path):

@@ -9,9 +9,12 @@ import torch
 import torch.nn.functional as F
 
 import genie
-from genie import GenieConfig, STMaskGIT
 from common.config import ConfigError
-from genie.st_mask_git import CheckpointError
+from common.errors import CheckpointError
+from genie import GenieConfig, MaskGITBatch, STMaskGIT, TrainingRecipe
+from genie.checkpoint import load_state_dict_checked
+from genie.objectives import reveal_own_predictions, two_stream_loss
+from genie.reference import full_logits_loss
 
 CONFIG_DIR = Path(genie.__file__).parent / "configs"
 
@@ -118,6 +121,12 @@ def random_tokens(config: GenieConfig, B: int, T: int, seed: int = 0, mask_rate:
     return x.masked_fill(torch.rand(x.shape, generator=g) < mask_rate, config.mask_token_id)
 
 
+def flat_logits(logits_BVFTHW: torch.Tensor) -> torch.Tensor:
+    """The model's factored logits (B, V, F, T, H, W) in the published readout order (B, F*V, T, H, W)."""
+    B, V, F_ = logits_BVFTHW.shape[:3]
+    return logits_BVFTHW.transpose(1, 2).reshape(B, F_ * V, *logits_BVFTHW.shape[3:])
+
+
 def test_35m_config_has_published_names_shapes_and_size():
     config = GenieConfig.from_pretrained(CONFIG_DIR / "magvit_n32_h8_d256.json")
     shapes = {k: tuple(v.shape) for k, v in STMaskGIT(config).state_dict().items()}
@@ -150,28 +159,26 @@ def test_published_layout_checkpoint_matches_reference_forward(tmp_path, qk_norm
     assert not model.training
     x = random_tokens(config, B=2, T=4)
     with torch.no_grad():
-        logits = model.compute_logits(x)
-        out = model(x.flatten(1), x.flatten(1))
+        logits = model.logits(x)
     ref = reference_logits(sd, config, x)
-    assert logits.shape == (2, 2 * 64, 4, 4, 4)
+    assert logits.shape == (2, 64, 2, 4, 4, 4)
     assert ref.abs().max() > 1  # the comparison is not between near-zero numbers
-    torch.testing.assert_close(logits.double(), ref, atol=2e-4, rtol=1e-4)
-    torch.testing.assert_close(out.logits, logits)
+    torch.testing.assert_close(flat_logits(logits).double(), ref, atol=2e-4, rtol=1e-4)
 
 
 def test_mup_scales_attention_and_readout(tmp_path):
     config = tiny_config(use_mup=True, d_model=64, num_heads=4)
     sd = published_state_dict(config, seed=1)
     model = STMaskGIT(config)
-    model.load_checkpoint_state_dict(sd)
+    load_state_dict_checked(model, sd)
     x = random_tokens(config, B=1, T=3, seed=1)
     with torch.no_grad():
-        logits = model.compute_logits(x)
-    torch.testing.assert_close(logits.double(), reference_logits(sd, config, x), atol=2e-4, rtol=1e-4)
+        logits = model.logits(x)
+    torch.testing.assert_close(flat_logits(logits).double(), reference_logits(sd, config, x), atol=2e-4, rtol=1e-4)
     plain = STMaskGIT(tiny_config(d_model=64, num_heads=4))
-    plain.load_checkpoint_state_dict(sd)
+    load_state_dict_checked(plain, sd)
     with torch.no_grad():
-        assert not torch.allclose(plain.compute_logits(x), logits, atol=1e-2)
+        assert not torch.allclose(plain.logits(x), logits, atol=1e-2)
 
 
 def sharp_readout_model(config: GenieConfig) -> STMaskGIT:
@@ -189,10 +196,10 @@ def test_loss_is_factored_ce_over_masked_tokens_of_later_frames():
     labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
     g = torch.Generator().manual_seed(3)
     inputs = labels.masked_fill(torch.rand(labels.shape, generator=g) < 0.5, config.mask_token_id)
-    out = model(inputs.flatten(1), labels.flatten(1), attention_mask=torch.ones_like(inputs.flatten(1)))
+    out = full_logits_loss(model, MaskGITBatch(inputs, labels))
 
     V = config.factored_vocab_size
-    logp = out.logits.detach().reshape(2, 2, V, 4, 4, 4).log_softmax(dim=2)  # (B, F, V, T, H, W)
+    logp = model.logits(inputs).detach().transpose(1, 2).log_softmax(dim=2)  # (B, F, V, T, H, W)
     ce = -(logp[:, 0].gather(1, (labels % V).unsqueeze(1)) + logp[:, 1].gather(1, (labels // V).unsqueeze(1)))
     ce = ce.squeeze(1)  # (B, T, H, W)
     right = (logp[:, 0].argmax(1) == labels % V) & (logp[:, 1].argmax(1) == labels // V)
@@ -207,7 +214,8 @@ def test_loss_is_factored_ce_over_masked_tokens_of_later_frames():
 
 @pytest.mark.parametrize("uses_actions", [False, True])
 def test_masked_only_readout_gives_same_loss_acc_and_gradients(uses_actions):
-    """return_logits=False (the training path) reads out only the counted tokens: same loss, acc and gradients."""
+    """The training loss reads out only the counted tokens: same loss, acc and gradients as from every token's
+    logits (genie.reference.full_logits_loss)."""
     extra = dict(num_latent_actions=3, action_dropout=0.0) if uses_actions else {}
     config = tiny_config(**extra)
     model = sharp_readout_model(config)
@@ -216,18 +224,18 @@ def test_masked_only_readout_gives_same_loss_acc_and_gradients(uses_actions):
     masked = torch.rand(labels.shape, generator=g) < 0.5
     masked[:, 0, 0, 0] = True  # a masked token in frame 0, which must not count
     inputs = labels.masked_fill(masked, config.mask_token_id)
-    kwargs = dict(latent_actions=torch.randint(0, 3, (2, 4), generator=g)) if uses_actions else {}
+    batch = MaskGITBatch(inputs, labels, latent_actions=torch.randint(0, 3, (2, 4), generator=g) if uses_actions
+                         else None)
 
     grads = []
     outs = []
-    for return_logits in (True, False):
+    for loss_fn in (full_logits_loss, lambda m, b: m(b)):
         model.zero_grad()
-        out = model(inputs.flatten(1), labels.flatten(1), return_logits=return_logits, **kwargs)
+        out = loss_fn(model, batch)
         out.loss.backward()
         outs.append(out)
         grads.append({n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
     full, masked_only = outs
-    assert masked_only.logits is None and full.logits is not None
     torch.testing.assert_close(masked_only.loss, full.loss)
     torch.testing.assert_close(masked_only.acc, full.acc)
     assert grads[0].keys() == grads[1].keys() and grads[0]["out_x_proj.weight"].abs().sum() > 0
@@ -238,7 +246,7 @@ def test_masked_only_readout_gives_same_loss_acc_and_gradients(uses_actions):
 @pytest.mark.parametrize("uses_actions", [False, True])
 def test_two_stream_loss_equals_one_full_pass_per_target(uses_actions):
     """target_ids: every frame t >= 1 predicted from clean frames < t in one pass; the reference runs the whole
-    window once per target (frame t = its masked version, later frames masked) through compute_logits."""
+    window once per target (frame t = its masked version, later frames masked) through model.logits."""
     extra = dict(num_latent_actions=3, action_dropout=0.0) if uses_actions else {}
     config = tiny_config(**extra)
     model = sharp_readout_model(config)
@@ -249,8 +257,7 @@ def test_two_stream_loss_equals_one_full_pass_per_target(uses_actions):
     targets = labels.masked_fill(masked, config.mask_token_id)
     kwargs = dict(latent_actions=torch.randint(0, 3, (2, 4), generator=g)) if uses_actions else {}
 
-    out = model(labels.flatten(1), labels.flatten(1), target_ids=targets.flatten(1), **kwargs)
-    assert out.logits is None
+    out = model(MaskGITBatch(labels, labels, target_ids=targets, **kwargs))
     out.loss.backward()
     grads = {n: p.grad.clone() for n, p in model.named_parameters()}
     model.zero_grad()
@@ -261,7 +268,7 @@ def test_two_stream_loss_equals_one_full_pass_per_target(uses_actions):
         window = labels.clone()
         window[:, t] = targets[:, t]
         window[:, t + 1:] = config.mask_token_id
-        logp = model.compute_logits(window, **kwargs)[:, :, t].reshape(2, 2, V, 4, 4).log_softmax(dim=2)
+        logp = model.logits(window, **kwargs)[:, :, :, t].transpose(1, 2).log_softmax(dim=2)  # (B, F, V, H, W)
         lab = labels[:, t]
         ce = -(logp[:, 0].gather(1, (lab % V).unsqueeze(1)) + logp[:, 1].gather(1, (lab // V).unsqueeze(1)))
         right = (logp[:, 0].argmax(1) == lab % V) & (logp[:, 1].argmax(1) == lab // V)
@@ -279,20 +286,20 @@ def test_two_stream_loss_equals_one_full_pass_per_target(uses_actions):
 def test_two_stream_rejects_masked_context_and_mismatched_targets():
     config = tiny_config()
     model = STMaskGIT(config)
-    labels = random_tokens(config, B=1, T=4, mask_rate=0.0).flatten(1)
+    labels = random_tokens(config, B=1, T=4, mask_rate=0.0)
     with pytest.raises(ValueError, match="context frames .* must not hold mask tokens"):
-        model(labels.masked_fill(torch.ones_like(labels, dtype=torch.bool), config.mask_token_id), labels,
-              target_ids=labels)
+        model(MaskGITBatch(labels.masked_fill(torch.ones_like(labels, dtype=torch.bool), config.mask_token_id),
+                           labels, target_ids=labels))
     with pytest.raises(ValueError, match="target_ids must have the shape of input_ids"):
-        model(labels, labels, target_ids=labels[:, :-16])
+        two_stream_loss(model, MaskGITBatch(labels, labels, target_ids=labels[:, :-1]))
 
 
 def test_self_reveal_fills_masked_tokens_with_the_models_greedy_guesses():
-    config = tiny_config(self_reveal_ratio=1.0, T=4)
+    config = tiny_config(T=4)
     model = sharp_readout_model(config)
     x = random_tokens(config, B=3, T=4, mask_rate=0.7)
     torch.manual_seed(0)
-    revealed = model._reveal_own_predictions(x, None)
+    revealed = reveal_own_predictions(model, x, None, ratio=1.0)
     was_masked = x == config.mask_token_id
     assert torch.equal(revealed[~was_masked], x[~was_masked]), "given tokens stay"
     assert torch.equal(revealed[:, 0], x[:, 0]), "frame 0 is never a target"
@@ -300,36 +307,53 @@ def test_self_reveal_fills_masked_tokens_with_the_models_greedy_guesses():
     later_masked = was_masked[:, 1:].sum().item()
     assert 0.15 < filled.sum().item() / later_masked < 0.6  # a 1 - cos(pi/2 u) share, 0.36 on average
     with torch.no_grad():  # the guesses are the argmax of the full-logits path on the original input
-        logits = model.compute_logits(x).reshape(3, 2, config.factored_vocab_size, 4, 4, 4)
+        logits = model.logits(x).transpose(1, 2)  # (B, F, V, T, H, W)
     greedy = logits[:, 0].argmax(1) + config.factored_vocab_size * logits[:, 1].argmax(1)
     assert torch.equal(revealed[filled], greedy[filled])
 
 
 def test_self_reveal_only_in_training_and_only_for_the_chosen_share():
-    config = tiny_config(self_reveal_ratio=1.0, T=4)
+    config = tiny_config(T=4)
+    recipe = TrainingRecipe(self_reveal_ratio=1.0)
     model = sharp_readout_model(config)
     labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
     g = torch.Generator().manual_seed(1)
     x = labels.masked_fill(torch.rand(labels.shape, generator=g) < 0.8, config.mask_token_id)
     torch.manual_seed(5)
-    trained_on = model.train()(x.flatten(1), labels.flatten(1), return_logits=False)
+    trained_on = model.train()(MaskGITBatch(x, labels), recipe)
     torch.manual_seed(5)
-    revealed = model._reveal_own_predictions(x, None)
-    expected = model.eval()(revealed.flatten(1), labels.flatten(1))  # full-logits path, no reveal in eval mode
+    revealed = reveal_own_predictions(model, x, None, ratio=1.0)
+    expected = full_logits_loss(model.eval(), MaskGITBatch(revealed, labels))  # no reveal on this path
     torch.testing.assert_close(trained_on.loss, expected.loss)
     assert not torch.equal(revealed, x)
-    evaluated = model.eval()(x.flatten(1), labels.flatten(1), return_logits=False)
-    torch.testing.assert_close(evaluated.loss, model(x.flatten(1), labels.flatten(1)).loss)
+    evaluated = model.eval()(MaskGITBatch(x, labels), recipe)  # eval mode: nothing revealed
+    torch.testing.assert_close(evaluated.loss, full_logits_loss(model, MaskGITBatch(x, labels)).loss)
     assert not torch.allclose(evaluated.loss, trained_on.loss)
-    model.config.self_reveal_ratio = 0.0
-    assert torch.equal(model._reveal_own_predictions(x, None), x)
+    torch.manual_seed(5)
+    assert torch.allclose(model.train()(MaskGITBatch(x, labels)).loss, evaluated.loss)  # the published recipe
+    assert torch.equal(reveal_own_predictions(model, x, None, ratio=0.0), x)
 
 
-@pytest.mark.parametrize("field", ["teacher_forced_ratio", "two_stream_ratio", "two_stream_partial_ratio",
-                                   "self_reveal_ratio"])
+@pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio",
+                                   "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
-        tiny_config(**{field: 1.5})
+        TrainingRecipe(**{field: 1.5})
+
+
+def test_one_config_file_holds_architecture_and_recipe_and_legacy_keys_load(tmp_path):
+    d = {**tiny_config(qk_norm=True).to_dict(), "max_corrupt_rate": 0.05, "teacher_forced_ratio": 1.0,
+         "self_reveal_ratio": 0.5}
+    config, recipe = GenieConfig.from_dict(d), TrainingRecipe.from_dict(d)
+    assert config == tiny_config(qk_norm=True)
+    assert recipe == TrainingRecipe(max_corrupt_rate=0.05, whole_frame_mask_ratio=1.0, self_reveal_ratio=0.5)
+    with pytest.raises(ConfigError, match="unknown key"):
+        TrainingRecipe.from_dict({**d, "rope": True})
+    # a checkpoint saved with its recipe loads as the architecture; the recipe reads back from the same file
+    model = STMaskGIT(config)
+    model.save_pretrained(tmp_path / "ckpt", recipe=recipe)
+    assert STMaskGIT.from_pretrained(tmp_path / "ckpt").config == config
+    assert TrainingRecipe.from_pretrained(tmp_path / "ckpt" / "config.json") == recipe
 
 
 def test_masked_only_readout_without_masked_tokens_is_zero_loss():
@@ -337,7 +361,7 @@ def test_masked_only_readout_without_masked_tokens_is_zero_loss():
     model = STMaskGIT(config)
     model.init_weights()
     labels = random_tokens(config, B=1, T=4, mask_rate=0.0)
-    out = model(labels.flatten(1), labels.flatten(1), return_logits=False)
+    out = model(MaskGITBatch(labels, labels))
     assert out.loss.item() == 0.0 and out.acc.item() == 0.0
     out.loss.backward()  # no counted token: still a valid (zero) graph
 
@@ -360,7 +384,7 @@ def test_init_weights():
 
 
 def test_sincos_positions_of_non_square_grids():
-    from genie.st_mask_git import sincos_pos_embed
+    from genie.model import sincos_pos_embed
     pos = sincos_pos_embed(T=3, S=10, d_model=30)
     assert pos.shape == (1, 3, 10, 30)
     assert torch.isfinite(pos).all() and pos.abs().max() > 0
@@ -412,7 +436,7 @@ def test_weights_not_matching_config_list_the_keys(tmp_path):
     sd["out_x_proj.bias"] = torch.zeros(7)
     model = STMaskGIT(config)
     with pytest.raises(CheckpointError, match=r"out_x_proj.bias: checkpoint \(7,\)"):
-        model.load_checkpoint_state_dict(sd)
+        load_state_dict_checked(model, sd)
 
 
 def test_missing_checkpoint_and_offline_hub_id_errors(tmp_path):
@@ -430,13 +454,13 @@ def test_bad_token_inputs_are_rejected():
     config = tiny_config()
     model = STMaskGIT(config)
     with pytest.raises(ValueError, match="position embeddings"):
-        model.compute_logits(torch.zeros(1, config.T + 1, 4, 4, dtype=torch.long))
+        model.logits(torch.zeros(1, config.T + 1, 4, 4, dtype=torch.long))
     with pytest.raises(ValueError, match="H\\*W = S = 16"):
-        model.compute_logits(torch.zeros(1, 2, 3, 3, dtype=torch.long))
+        model.logits(torch.zeros(1, 2, 3, 3, dtype=torch.long))
     with pytest.raises(ValueError, match="token ids must be in"):
-        model.compute_logits(torch.full((1, 2, 4, 4), config.mask_token_id + 1))
+        model.logits(torch.full((1, 2, 4, 4), config.mask_token_id + 1))
     with pytest.raises(ValueError, match="input_ids and labels"):
-        model(torch.zeros(1, 20, dtype=torch.long), torch.zeros(1, 20, dtype=torch.long))
+        model(MaskGITBatch(torch.zeros(1, 2, 4, 4, dtype=torch.long), torch.zeros(1, 3, 4, 4, dtype=torch.long)))
 
 
 def test_bf16_autocast_forward_runs():
@@ -445,9 +469,10 @@ def test_bf16_autocast_forward_runs():
     model.init_weights()
     x = random_tokens(config, B=1, T=4)
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
-        out = model(x.flatten(1), x.flatten(1))
+        out = model(MaskGITBatch(x, x))
+        logits = model.logits(x)
     assert torch.isfinite(out.loss)
-    assert F.cosine_similarity(out.logits.float().flatten(), model.compute_logits(x).detach().flatten(), 0) > 0.99
+    assert F.cosine_similarity(logits.float().flatten(), model.logits(x).detach().flatten(), 0) > 0.99
 
 
 @pytest.mark.parametrize("mask", ["none", "causal", "bool"])

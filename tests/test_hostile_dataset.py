@@ -44,10 +44,10 @@ def load_or_explain(path: Path, params, culprit: str, arrays: dict, must_fail: b
         return
     assert not must_fail, f"corrupting {culprit} went unnoticed"
     segment_ids = np.fromfile(path / "segment_ids.bin", dtype="<i4")
-    for item in items:
-        frames = slice(item["start_ind"], item["start_ind"] + (window_size - 1) * stride + 1, stride)
-        np.testing.assert_array_equal(item["input_ids"].numpy(), arrays["video"][frames].reshape(-1))
-        np.testing.assert_allclose(item["actions"][:, :2].numpy(), arrays["cmd"][frames].astype(np.float32))
+    for start, item in zip(ds.valid_start_inds, items):
+        frames = slice(start, start + (window_size - 1) * stride + 1, stride)
+        np.testing.assert_array_equal(item["tokens"].numpy(), arrays["video"][frames])
+        np.testing.assert_allclose(item["actions"]["cmd"].numpy(), arrays["cmd"][frames].astype(np.float32))
         assert segment_ids[frames][0] == segment_ids[frames][-1]
 
 

@@ -14,8 +14,7 @@ import pytest
 import torch
 
 import train
-from genie.config import GenieConfig
-from genie.st_mask_git import STMaskGIT
+from genie import GenieConfig, STMaskGIT
 from common.train_state import (COMPLETE_MARKER, TrainingStateError, atomic_directory, capture_rng_state,
                                list_checkpoints, load_state_files, load_training_checkpoint, remove_stale_temp_dirs,
                                resolve_resume_path, restore_rng_state, save_state_files)

@@ -89,8 +89,8 @@ def test_dataset_index_and_items(tmp_path, window_size, stride):
                 start = expected[-1]
                 frames = video[start:start + (window_size - 1) * stride + 1:stride]
                 assert frames.shape[0] == window_size
-                assert item["start_ind"] == start
-                assert torch.equal(item["input_ids"], torch.from_numpy(frames.reshape(-1)))
+                assert ds.valid_start_inds[len(ds) - 1] == start
+                assert torch.equal(item["tokens"], torch.from_numpy(frames))
 
 
 def test_item_content_and_actions(tmp_path):
@@ -103,14 +103,15 @@ def test_item_content_and_actions(tmp_path):
     assert ds.data.shape == (n, 3, 3) and ds.vocab_size == 100 and ds.metadata["hz"] == 30
     item = ds[5]
     start = int(ds.valid_start_inds[5])
-    assert item["start_ind"] == start == 5
-    expected = torch.from_numpy(video[start:start + 10:3].reshape(-1))
-    for key in ("input_ids", "labels"):
-        assert item[key].dtype == torch.int64 and torch.equal(item[key], expected)
-    assert torch.equal(item["attention_mask"], torch.ones(4 * 9, dtype=torch.int64))
-    assert item["actions"].dtype == torch.float32 and item["actions"].shape == (4, 6)
-    expected_actions = np.concatenate([actions[k][start:start + 10:3] for k in ds.action_names], axis=1)
-    np.testing.assert_allclose(item["actions"].numpy(), expected_actions.astype(np.float32))
+    assert start == 5
+    expected = torch.from_numpy(video[start:start + 10:3])
+    assert set(item) == {"tokens", "actions"}
+    assert item["tokens"].dtype == torch.int64 and item["tokens"].shape == (4, 3, 3)
+    assert torch.equal(item["tokens"], expected)
+    assert list(item["actions"]) == ds.action_names
+    for k in ds.action_names:
+        assert item["actions"][k].dtype == torch.float32 and item["actions"][k].shape == (4, ds.action_dims[k])
+        np.testing.assert_allclose(item["actions"][k].numpy(), actions[k][start:start + 10:3].astype(np.float32))
     window = ds.get_window_actions(start)
     np.testing.assert_allclose(window["b_cmd"], actions["b_cmd"][start:start + 10:3].astype(np.float32))
 
@@ -122,7 +123,7 @@ def test_no_actions_and_no_segment_ids(tmp_path):
         RawTokenDataset(tmp_path, window_size=3)
     ds = RawTokenDataset(tmp_path, window_size=3, filter_interrupts=False)
     assert ds.segment_ids is None and ds.action_names == [] and ds.actions == {}
-    assert len(ds) == 18 and "actions" not in ds[0]
+    assert len(ds) == 18 and ds[0]["actions"] == {}
 
 
 def test_pickle_reopens_memmaps(tmp_path):
@@ -131,8 +132,9 @@ def test_pickle_reopens_memmaps(tmp_path):
     blob = pickle.dumps(ds)
     assert len(blob) < 1000 * 8 * 8 * 4 // 10  # the video itself is not in the pickle
     copy = pickle.loads(blob)
-    for key in ("input_ids", "actions"):
-        assert torch.equal(copy[3][key], ds[3][key])
+    assert torch.equal(copy[3]["tokens"], ds[3]["tokens"])
+    assert copy[3]["actions"].keys() == ds[3]["actions"].keys() == {"a"}
+    assert torch.equal(copy[3]["actions"]["a"], ds[3]["actions"]["a"])
 
 
 def test_dataloader_with_workers(tmp_path):
@@ -140,8 +142,8 @@ def test_dataloader_with_workers(tmp_path):
     ds = RawTokenDataset(tmp_path, window_size=4)
     loader = torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2)
     batch = next(iter(loader))
-    assert batch["input_ids"].shape == (4, 16)
-    assert torch.equal(batch["input_ids"][1], ds[1]["input_ids"])
+    assert batch["tokens"].shape == (4, 4, 2, 2)
+    assert torch.equal(batch["tokens"][1], ds[1]["tokens"])
 
 
 def test_read_metadata(tmp_path):
@@ -221,7 +223,7 @@ def test_token_dtype_uint16(tmp_path):
     video = make_dataset(tmp_path, n=12, token_dtype="uint16")
     assert (tmp_path / "video.bin").stat().st_size == 12 * 4 * 2
     ds = RawTokenDataset(tmp_path, 3)
-    assert torch.equal(ds[0]["input_ids"], torch.from_numpy(video[:3].reshape(-1)))
+    assert torch.equal(ds[0]["tokens"], torch.from_numpy(video[:3]).long())
 
 
 def test_segment_ids_bad(tmp_path):
@@ -296,7 +298,7 @@ def test_token_out_of_vocab(tmp_path):
                                                 r"vocab_size=16"):
         ds[5]
     unchecked = RawTokenDataset(tmp_path, window_size=3, stride=2, check_tokens=False)
-    assert unchecked[5]["input_ids"].max() == 16
+    assert unchecked[5]["tokens"].max() == 16
     with pytest.raises(TokenDatasetError, match="video.bin: token id 16 at frame 9"):
         ds.validate(full=True)
 
@@ -362,7 +364,7 @@ def test_writer_exception_leaves_nothing(tmp_path):
             writer.append(video, None)
             raise RuntimeError("boom")
     assert [p.name for p in tmp_path.iterdir()] == ["ds"]
-    assert RawTokenDataset(tmp_path / "ds", 1)[0]["input_ids"].tolist() == [1, 1, 1, 1]
+    assert RawTokenDataset(tmp_path / "ds", 1)[0]["tokens"].flatten().tolist() == [1, 1, 1, 1]
 
 
 def test_writer_overwrite(tmp_path):

@@ -8,9 +8,9 @@ from safetensors.torch import load_file
 
 import train
 from data import RawTokenDataset, write_token_dataset
+from genie import GenieConfig, STMaskGIT
 from genie.masking import get_maskgit_collator
-from genie.config import GenieConfig
-from genie.st_mask_git import STMaskGIT
+from genie.reference import full_logits_loss
 from common.train_state import (COMPLETE_MARKER, ResumableBatchSampler, list_checkpoints,
                                load_training_checkpoint)
 
@@ -59,7 +59,7 @@ def masked_val_loss(model, data_dir, config, num_windows=8):
     ds = RawTokenDataset(data_dir, window_size=config.T, stride=1)
     batch = get_maskgit_collator(config, seed=0)([ds[i] for i in range(num_windows)])
     with torch.no_grad():
-        return model.eval()(input_ids=batch["input_ids"], labels=batch["labels"]).loss.item()
+        return full_logits_loss(model.eval(), batch).loss.item()
 
 
 def load_weights(ckpt_dir):
@@ -90,16 +90,17 @@ def test_two_stream_training_lowers_the_teacher_forced_loss(tiny_data, tmp_path)
                                                two_stream_partial_ratio=0.3))
     train.main(train_argv(data, tmp_path / "run", "--max_train_steps", "30", "--checkpointing_steps", "0",
                           "--eval_every_n_steps", "15"))
-    config = GenieConfig.from_pretrained(data["config"])
+    config, recipe = train.load_config(data["config"])
+    assert recipe.two_stream_ratio == 1.0
     torch.manual_seed(0)
     untrained = STMaskGIT(config)
     untrained.init_weights()
     trained = STMaskGIT.from_pretrained(tmp_path / "run" / "final_checkpt")
     ds = RawTokenDataset(data["val"], window_size=config.T, stride=1)
-    batch = get_maskgit_collator(config, seed=0)([ds[i] for i in range(8)])
-    assert "target_ids" in batch
+    batch = get_maskgit_collator(config, recipe, seed=0)([ds[i] for i in range(8)])
+    assert batch.target_ids is not None
     with torch.no_grad():
-        before, after = (model.eval()(**batch).loss.item() for model in (untrained, trained))
+        before, after = (model.eval()(batch).loss.item() for model in (untrained, trained))
     assert after < 0.7 * before, (before, after)
 
 

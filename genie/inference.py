@@ -1,0 +1,167 @@
+"""Inference with the temporal KV cache: autoregressive generation and the challenge's teacher-forced evaluation.
+
+Frame t depends only on frames <= t (causal temporal attention, per-frame spatial attention), so each layer's
+temporal keys/values of the frames already known are kept (genie/kv_cache.py) and each MaskGIT step computes only
+the frame being sampled. genie/reference.py holds the same computations without the cache (full recomputation,
+the published procedure); the tests hold the two equal and benchmarks/bench_eval.py measures the difference.
+"""
+from typing import Optional, Tuple
+
+import torch
+from einops import rearrange
+
+from genie.kv_cache import TemporalKVCache
+from genie.sampling import maskgit_sample
+from genie.transformer import TemporalMode
+
+
+def _frames(cond_BTC: Optional[torch.Tensor], start: int, end: int) -> Optional[torch.Tensor]:
+    """Action embeddings of window frames start..end-1, or None for a model without action inputs."""
+    return None if cond_BTC is None else cond_BTC[:, start:end]
+
+
+def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: TemporalKVCache,
+               mode: TemporalMode = TemporalMode.APPEND, commit: int = 0,
+               cond_BTC: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+    """Run T frames at absolute positions first_frame.. against the frames in kv_cache.
+
+    mode APPEND / PREFILL: the frames follow the cached ones (first_frame == kv_cache.length); `commit` of them
+    (from the first) are then kept in the cache. TARGETS: teacher-forced targets, frame first_frame + i attends to
+    cached frames < first_frame + i and to itself (the cache holds frames 0..T-1 and first_frame is 1).
+    cond_BTC: action embeddings of these T frames (B, T, C), `model.action_embeds` of the window sliced to them.
+    Returns factored logits (B, V, F, T, H, W), or None in PREFILL mode.
+    Inputs are not checked (ids the sampler produced: no device sync per step); `check_frames` does that.
+    """
+    x_BTSC = model.hidden_states(x_BTHW, cond_BTC, first_frame, mode, kv_cache)
+    kv_cache.commit(commit)
+    if x_BTSC is None:
+        return None
+    return rearrange(model.readout(x_BTSC), "B T (H W) V F -> B V F T H W", H=model.config.H)
+
+
+def check_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: TemporalKVCache, mode: TemporalMode,
+                 cond_BTC: Optional[torch.Tensor] = None) -> None:
+    """Clear errors for a `run_frames` call whose frames, cache and mode do not fit together."""
+    model.check_tokens(x_BTHW, first_frame)
+    if cond_BTC is not None and cond_BTC.shape[:2] != x_BTHW.shape[:2]:
+        raise ValueError(f"cond_BTC {tuple(cond_BTC.shape)} does not match the frames {tuple(x_BTHW.shape)}")
+    T = x_BTHW.shape[1]
+    if mode is TemporalMode.TARGETS and (first_frame != 1 or kv_cache.length != T):
+        raise ValueError(f"teacher-forced targets 1..{T} need a cache of frames 0..{T - 1} and first_frame 1; "
+                         f"got {kv_cache.length} cached frames and first_frame {first_frame}")
+    if mode is not TemporalMode.TARGETS and first_frame != kv_cache.length:
+        raise ValueError(f"frames starting at {first_frame} must follow the {kv_cache.length} cached frames")
+
+
+def context_cache(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor]) -> TemporalKVCache:
+    """Temporal keys/values of context frames 0..T-2 of a window (B, T, H, W), for targets 1..T-1."""
+    n = x_BTHW.shape[1] - 1
+    kv_cache = TemporalKVCache(model.config.num_layers, n)
+    run_frames(model, x_BTHW[:, :n], 0, kv_cache, TemporalMode.PREFILL, commit=n, cond_BTC=_frames(cond_BTC, 0, n))
+    return kv_cache
+
+
+def check_generation(model, prompt_BTHW: torch.Tensor, num_new_frames: int) -> None:
+    T0 = prompt_BTHW.shape[1]
+    if T0 < 1 or num_new_frames < 1:
+        raise ValueError(f"need at least one prompt frame and one new frame, got {T0} and {num_new_frames}")
+    if T0 + num_new_frames > model.config.T:
+        raise ValueError(f"cannot generate up to frame {T0 + num_new_frames - 1}: the model has position embeddings "
+                         f"for T = {model.config.T} frames (prompt {T0} + {num_new_frames} new > {model.config.T})")
+    model.check_tokens(prompt_BTHW)
+
+
+@torch.no_grad()
+def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_steps: int = 2,
+             temperature: float = 0.0, unmask_mode: str = "random", generator: Optional[torch.Generator] = None,
+             actions: Optional[torch.Tensor] = None, latent_actions: Optional[torch.Tensor] = None,
+             control: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Autoregressively generate frames after a prompt.
+
+    prompt_BTHW: (B, T0, H, W) token ids; T0 + num_new_frames must be <= config.T.
+    actions (B, T0 + n, D), latent_actions (B, T0 + n): per-frame action rows of the whole window (models with
+    action inputs). control=False: only the prompt's rows are used (the challenge's rule; later frames get "no
+    action" whatever the rows hold); control=True: all rows are played (driving the world).
+    Each MaskGIT step costs one frame's compute, plus one pass per finished frame to append it to the cache.
+    Returns (tokens (B, T0 + n, H, W): prompt then generated frames,
+             first-step factored logits of the generated frames (B, V, F, n, H, W)).
+    """
+    check_generation(model, prompt_BTHW, num_new_frames)
+    B, T0 = prompt_BTHW.shape[:2]
+    total = T0 + num_new_frames
+    cond_BTC = model.action_embeds(B, total, actions, latent_actions, total if control else T0)
+    tokens_BTHW = torch.cat([prompt_BTHW, torch.full_like(prompt_BTHW[:, :1], model.mask_token_id)
+                             .expand(-1, num_new_frames, -1, -1)], dim=1)
+    kv_cache = TemporalKVCache(model.config.num_layers, total)
+    run_frames(model, prompt_BTHW, 0, kv_cache, TemporalMode.PREFILL, commit=T0, cond_BTC=_frames(cond_BTC, 0, T0))
+    all_logits = []
+    for t in range(T0, total):
+        def logits_fn(frame_BHW):
+            return run_frames(model, frame_BHW.unsqueeze(1), t, kv_cache,
+                              cond_BTC=_frames(cond_BTC, t, t + 1))[:, :, :, 0]
+
+        sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], model.mask_token_id, maskgit_steps,
+                                                  temperature, unmask_mode, generator)
+        tokens_BTHW[:, t] = sample_BHW
+        all_logits.append(logits_BVFHW)
+        if t + 1 < total:
+            run_frames(model, sample_BHW.unsqueeze(1), t, kv_cache, TemporalMode.PREFILL, commit=1,
+                       cond_BTC=_frames(cond_BTC, t, t + 1))
+    return tokens_BTHW, torch.stack(all_logits, dim=3)
+
+
+def check_teacher_forced(model, x_BTHW: torch.Tensor) -> None:
+    if x_BTHW.dim() == 4 and x_BTHW.shape[1] < 2:
+        raise ValueError(f"teacher forcing needs windows of at least 2 frames, got {x_BTHW.shape[1]}")
+    model.check_tokens(x_BTHW)
+
+
+def target_action_embeds(model, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor],
+                         latent_actions: Optional[torch.Tensor]):
+    """(context, target) action embeddings (B, T, C) of a teacher-forced window: context frames (all earlier than
+    every target that sees them) know all their rows; target t knows rows < t, the real action of frame t-1 but
+    not the latent action inferred from frame t itself."""
+    B, T = x_BTHW.shape[:2]
+    return (model.action_embeds(B, T, actions, latent_actions, T),
+            model.action_embeds(B, T, actions, latent_actions, torch.arange(T)))
+
+
+@torch.no_grad()
+def teacher_forced(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperature: float = 0.0,
+                   unmask_mode: str = "random", generator: Optional[torch.Generator] = None,
+                   actions: Optional[torch.Tensor] = None,
+                   latent_actions: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The challenge protocol (docs/formats.md §5): predict each frame t = 1..T-1 of a window from ground-truth
+    frames 0..t-1.
+
+    x_BTHW: (B, T, H, W) ground-truth token ids, 2 <= T <= config.T.
+    actions (B, T, D), latent_actions (B, T): per-frame action rows (models with action inputs), see
+    `target_action_embeds`.
+    Frames 0..T-2 are computed once and all T-1 targets go through the model together in one pass per MaskGIT
+    step (target t attends to the cached frames < t and to itself).
+    Returns (samples of frames 1..T-1 (B, T-1, H, W), first-step factored logits (B, V, F, T-1, H, W)).
+    """
+    check_teacher_forced(model, x_BTHW)
+    B, T, H, W = x_BTHW.shape
+    context_cond_BTC, target_cond_BTC = target_action_embeds(model, x_BTHW, actions, latent_actions)
+    kv_cache = context_cache(model, x_BTHW, context_cond_BTC)
+
+    def logits_fn(frames_NHW):
+        frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
+        logits_BVFnHW = run_frames(model, frames_BnHW, 1, kv_cache, TemporalMode.TARGETS,
+                                   cond_BTC=_frames(target_cond_BTC, 1, T))
+        return rearrange(logits_BVFnHW, "B V F n H W -> (B n) V F H W")
+
+    return sample_targets(model, logits_fn, B, T, x_BTHW, maskgit_steps, temperature, unmask_mode, generator)
+
+
+def sample_targets(model, logits_fn, B: int, T: int, x_BTHW: torch.Tensor, maskgit_steps: int, temperature: float,
+                   unmask_mode: str, generator: Optional[torch.Generator]) -> Tuple[torch.Tensor, torch.Tensor]:
+    """MaskGIT over the B * (T-1) fully masked targets of a teacher-forced window, given their logits function
+    ((B*(T-1), H, W) -> (B*(T-1), V, F, H, W)); shapes as `teacher_forced` returns them."""
+    H, W = x_BTHW.shape[2:]
+    masked_NHW = torch.full((B * (T - 1), H, W), model.mask_token_id, dtype=x_BTHW.dtype, device=x_BTHW.device)
+    samples_NHW, logits_NVFHW = maskgit_sample(logits_fn, masked_NHW, model.mask_token_id, maskgit_steps,
+                                               temperature, unmask_mode, generator)
+    return (rearrange(samples_NHW, "(B n) H W -> B n H W", B=B),
+            rearrange(logits_NVFHW, "(B n) V F H W -> B V F n H W", B=B))

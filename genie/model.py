@@ -1,0 +1,211 @@
+"""STMaskGIT: the GENIE dynamics model, loadable from the published GENIE_35M / GENIE_138M checkpoints.
+
+token ids (B, T, H, W) -> embed (factored token embeddings + positions + optional action embeddings)
+-> spatio-temporal transformer -> factored readout: logits (B, V, F, T, H, W), factor f of value v.
+Parameter names, shapes and math follow docs/formats.md §3. The training objectives live in genie/objectives.py
+(`forward` computes them, so DDP sees one call), inference in genie/inference.py, the uncached reference versions
+in genie/reference.py and checkpoint files in genie/checkpoint.py.
+"""
+import math
+from pathlib import Path
+from typing import Optional, Union
+
+import torch
+from einops import rearrange
+from huggingface_hub import PyTorchModelHubMixin
+from torch import nn
+
+from genie import checkpoint, objectives
+from genie.actions import ActionConditioning
+from genie.config import GenieConfig, TrainingRecipe
+from genie.factorization import factorize_token_ids
+from genie.kv_cache import TemporalKVCache
+from genie.masking import MaskGITBatch
+from genie.transformer import STTransformer, TemporalMode
+
+MUP_BASE_D_MODEL = 256  # the published muP base shape (set_mup_shapes hard-codes d_model 256)
+
+
+class FactorizedEmbedding(nn.Module):
+    """A token's embedding is the sum of its factors' embeddings; the mask token has its own embedding."""
+
+    def __init__(self, factored_vocab_size: int, num_factored_vocabs: int, d_model: int, mask_token_id: int):
+        super().__init__()
+        self.factored_vocab_size = factored_vocab_size
+        self.num_factored_vocabs = num_factored_vocabs
+        self.mask_token_id = mask_token_id
+        self.factored_embeds = nn.ModuleList([nn.Embedding(factored_vocab_size, d_model)
+                                              for _ in range(num_factored_vocabs)])
+        self.mask_token_embed = nn.Parameter(torch.zeros(1, d_model))
+
+    def forward(self, token_ids: torch.Tensor) -> torch.Tensor:
+        """(...) token ids in [0, image_vocab_size] (the last is the mask token) -> (..., d_model)."""
+        is_mask = token_ids == self.mask_token_id
+        factors = factorize_token_ids(token_ids.masked_fill(is_mask, 0), self.num_factored_vocabs,
+                                      self.factored_vocab_size).unbind(-1)
+        embeds = self.factored_embeds[0](factors[0])
+        for embed, factor in zip(self.factored_embeds[1:], factors[1:]):
+            embeds = embeds + embed(factor)
+        return torch.where(is_mask.unsqueeze(-1), self.mask_token_embed.to(embeds.dtype), embeds)
+
+
+class STMaskGIT(nn.Module, PyTorchModelHubMixin):
+    def __init__(self, config: GenieConfig):
+        super().__init__()
+        self.config = config
+        # `decoder` is the published parameter prefix of the transformer (decoder.layers.N...)
+        self.decoder = STTransformer(config)
+        self.pos_embed_TSC = nn.Parameter(torch.zeros(1, config.T, config.S, config.d_model))
+        self.token_embed = FactorizedEmbedding(config.factored_vocab_size, config.num_factored_vocabs,
+                                               config.d_model, config.mask_token_id)
+        self.out_x_proj = nn.Linear(config.d_model, config.factored_vocab_size * config.num_factored_vocabs)
+        # muP readout (mup.MuReadout with output_mult 1): the input is divided by d_model / base d_model
+        self.readout_width_mult = config.d_model / MUP_BASE_D_MODEL if config.use_mup else None
+        # only when enabled, so the published parameter layout is unchanged
+        self.action_cond = ActionConditioning(config) if config.uses_actions else None
+
+    @property
+    def mask_token_id(self) -> int:
+        return self.config.mask_token_id
+
+    def init_weights(self) -> None:
+        """Normal(0, 0.02) for Linear and Embedding weights, zero biases (as published); sin-cos positions.
+
+        The published code leaves pos_embed_TSC at zero, so at first temporal attention cannot tell the previous
+        frame from any earlier one and must learn positions from scratch before it can learn to copy; a sin-cos
+        start (of the same scale as the token embeddings) makes a small model learn that in a few hundred steps.
+        Loading a checkpoint replaces it, so published weights behave exactly as published.
+        """
+        for module in self.modules():
+            if isinstance(module, (nn.Linear, nn.Embedding)):
+                nn.init.normal_(module.weight, mean=0.0, std=0.02)
+            if isinstance(module, nn.Linear) and module.bias is not None:
+                nn.init.zeros_(module.bias)
+        with torch.no_grad():
+            self.pos_embed_TSC.copy_(sincos_pos_embed(self.config.T, self.config.S, self.config.d_model))
+
+    # ---------------------------------------------------------------- the network
+    def check_tokens(self, x_BTHW: torch.Tensor, first_frame: int = 0) -> None:
+        """Clear errors for token ids that do not fit the model (shape, frame range, dtype, id range)."""
+        if x_BTHW.dim() != 4 or x_BTHW.shape[2] * x_BTHW.shape[3] != self.config.S:
+            raise ValueError(f"expected token ids of shape (B, T, H, W) with H*W = S = {self.config.S}, "
+                             f"got {tuple(x_BTHW.shape)}")
+        if first_frame + x_BTHW.shape[1] > self.config.T:
+            raise ValueError(f"frames {first_frame}..{first_frame + x_BTHW.shape[1] - 1} requested, but the model "
+                             f"has position embeddings for T = {self.config.T} frames only")
+        if x_BTHW.is_floating_point():
+            raise ValueError(f"token ids must be integers, got {x_BTHW.dtype}")
+        if ((x_BTHW < 0) | (x_BTHW > self.mask_token_id)).any():
+            raise ValueError(f"token ids must be in [0, {self.config.image_vocab_size}) or the mask token "
+                             f"{self.mask_token_id}; got values in [{x_BTHW.min().item()}, {x_BTHW.max().item()}]")
+
+    def action_embeds(self, B: int, T: int, actions: Optional[torch.Tensor] = None,
+                      latent_actions: Optional[torch.Tensor] = None,
+                      known_T: Union[int, torch.Tensor, None] = None) -> Optional[torch.Tensor]:
+        """Action embeddings (B, T, C) of window frames 0..T-1, or None for a model without action inputs.
+
+        actions (B, T, D) float, latent_actions (B, T) ids: per-frame rows as in the dataset (genie/actions.py).
+        known_T: how many leading rows each frame may use (int or (T,)); None: all of them.
+        A model without action inputs raises when given actions.
+        """
+        if self.action_cond is None:
+            if actions is not None or latent_actions is not None:
+                raise ValueError("this model has no action inputs (its config sets neither action_names nor "
+                                 "num_latent_actions); do not pass actions or latent_actions")
+            return None
+        self.action_cond.check_inputs(actions, latent_actions, B, T)
+        device = self.pos_embed_TSC.device
+        return self.action_cond(B, T, actions, latent_actions, T if known_T is None else known_T, device)
+
+    def hidden_states(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None, first_frame: int = 0,
+                      mode: TemporalMode = TemporalMode.CAUSAL,
+                      kv_cache: Optional[TemporalKVCache] = None) -> Optional[torch.Tensor]:
+        """Frames first_frame.. (B, T, H, W) -> final hidden states (B, T, S, C), before the readout.
+
+        cond_BTC: action embeddings of these frames (B, T, C) or None. mode / kv_cache: how the frames attend over
+        time (genie/transformer.py TemporalMode); PREFILL only fills the cache and returns None.
+        """
+        T = x_BTHW.shape[1]
+        x_BTSC = (self.token_embed(rearrange(x_BTHW, "B T H W -> B T (H W)"))
+                  + self.pos_embed_TSC[:, first_frame:first_frame + T])
+        if cond_BTC is not None:
+            x_BTSC = x_BTSC + cond_BTC.unsqueeze(2).to(x_BTSC.dtype)
+        return self.decoder(x_BTSC, mode, kv_cache)
+
+    def readout(self, x_NC: torch.Tensor) -> torch.Tensor:
+        """Hidden states (..., C) -> factored logits (..., V, F)."""
+        if self.readout_width_mult is not None:
+            x_NC = x_NC / self.readout_width_mult
+        return rearrange(self.out_x_proj(x_NC), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
+
+    def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
+               latent_actions: Optional[torch.Tensor] = None,
+               known_T: Union[int, torch.Tensor, None] = None) -> torch.Tensor:
+        """Token ids of frames 0..T-1 (B, T, H, W), T <= config.T -> factored logits (B, V, F, T, H, W).
+
+        actions / latent_actions / known_T: per-frame action inputs, see `action_embeds`.
+        """
+        self.check_tokens(x_BTHW)
+        B, T = x_BTHW.shape[:2]
+        return self.logits_unchecked(x_BTHW, self.action_embeds(B, T, actions, latent_actions, known_T))
+
+    def logits_unchecked(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """`logits` without input checks, with precomputed action embeddings (B, T, C) or None."""
+        return rearrange(self.readout(self.hidden_states(x_BTHW, cond_BTC)), "B T (H W) V F -> B V F T H W",
+                         H=self.config.H)
+
+    def forward(self, batch: MaskGITBatch, recipe: Optional[TrainingRecipe] = None) -> objectives.LossOutput:
+        """The training loss of a collated batch (genie/objectives.py): factored CE and accuracy over the tokens
+        it predicts. `recipe` supplies the objectives' options (self_reveal_ratio); None: the published recipe."""
+        return objectives.training_loss(self, batch, recipe or TrainingRecipe())
+
+    # ---------------------------------------------------------------- checkpoints (genie/checkpoint.py)
+    def save_pretrained(self, save_directory: Union[str, Path], *, config=None, repo_id: Optional[str] = None,
+                        push_to_hub: bool = False, model_card_kwargs: Optional[dict] = None,
+                        recipe: Optional[TrainingRecipe] = None, **push_to_hub_kwargs):
+        """Write config.json (+ the training recipe, when given) and model.safetensors atomically; `config` is
+        ignored (the model's own GenieConfig is saved)."""
+        checkpoint.save_model(self, save_directory, recipe)
+        if push_to_hub:
+            return self.push_to_hub(repo_id or Path(save_directory).name, model_card_kwargs=model_card_kwargs,
+                                    **push_to_hub_kwargs)
+        return None
+
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path: Union[str, Path], *, revision: Optional[str] = None,
+                        cache_dir=None, force_download: bool = False, local_files_only: bool = False,
+                        token=None, map_location: str = "cpu", **kwargs) -> "STMaskGIT":
+        """Load a checkpoint directory (config.json + model.safetensors) or a Hugging Face hub id, in eval mode."""
+        if kwargs:
+            raise TypeError(f"STMaskGIT.from_pretrained: unexpected arguments {sorted(kwargs)}")
+        checkpoint_dir = checkpoint.resolve_checkpoint_dir(
+            pretrained_model_name_or_path, revision=revision, cache_dir=cache_dir, force_download=force_download,
+            local_files_only=local_files_only, token=token)
+        model = cls(checkpoint.load_config(checkpoint_dir))
+        checkpoint.load_weights(model, checkpoint_dir, map_location)
+        return model.eval()
+
+
+def sincos_pos_embed(T: int, S: int, d_model: int, std: float = 0.02) -> torch.Tensor:
+    """Fixed sin-cos positions (1, T, S, d_model) with per-element RMS `std`.
+
+    Half of the channels encode the frame index, the other half the token index within the frame (row and column
+    when S is a square, else the flat index), each as sin/cos pairs over geometrically spaced frequencies.
+    """
+    def encode(positions: torch.Tensor, dim: int) -> torch.Tensor:
+        freqs = 1.0 / (100.0 ** (torch.arange(dim // 2, dtype=torch.float64) / max(dim // 2, 1)))
+        angles = positions.double()[:, None] * freqs[None]
+        return torch.cat([angles.sin(), angles.cos()], dim=-1)
+
+    d_time = d_model // 2 // 2 * 2
+    d_space = d_model - d_time
+    side = math.isqrt(S)
+    time_TC = encode(torch.arange(T), d_time)
+    if side * side == S and d_space % 4 == 0:
+        rows, cols = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
+        space_SC = torch.cat([encode(rows.flatten(), d_space // 2), encode(cols.flatten(), d_space // 2)], dim=-1)
+    else:
+        space_SC = encode(torch.arange(S), d_space)
+    space_SC = torch.nn.functional.pad(space_SC, (0, d_space - space_SC.shape[-1]))
+    pos_TSC = torch.cat([time_TC[:, None].expand(T, S, d_time), space_SC[None].expand(T, S, d_space)], dim=-1)
+    return (pos_TSC * (std * math.sqrt(2))).float().unsqueeze(0)

@@ -1,0 +1,113 @@
+"""Training objectives of the dynamics model: the MaskGIT masked-token loss (with the opt-in self-reveal inputs)
+and the opt-in two-stream loss. `STMaskGIT.forward` calls `training_loss`.
+
+Both read out only the tokens the loss counts (the (F*V)-wide logits of every other token are most of a small
+model's step); genie/reference.py computes the same loss from the logits of every token, and the tests hold the two
+equal.
+"""
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from einops import rearrange
+
+from genie.config import TrainingRecipe
+from genie.evaluation import factored_argmax_correct, factored_cross_entropy
+from genie.inference import context_cache
+from genie.masking import MaskGITBatch
+from genie.sampling import sample_factored_tokens
+from genie.schedule import cosine_schedule
+from genie.transformer import TemporalMode
+
+
+@dataclass
+class LossOutput:
+    loss: torch.Tensor  # factored CE summed over factors, mean over the predicted tokens
+    acc: torch.Tensor  # argmax accuracy (every factor right) over the same tokens
+
+
+def training_loss(model, batch: MaskGITBatch, recipe: TrainingRecipe) -> LossOutput:
+    """The loss of a collated batch: two-stream when it has targets, else the masked-token loss."""
+    if batch.target_ids is not None:
+        return two_stream_loss(model, batch)
+    return masked_loss(model, batch, recipe.self_reveal_ratio)
+
+
+def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0) -> LossOutput:
+    """Factored CE and accuracy over the masked tokens of frames 1..T-1 of batch.input_ids (B, T, H, W).
+
+    In training mode a share self_reveal_ratio of the examples first has part of its masked tokens filled with the
+    model's own guesses (`reveal_own_predictions`).
+    """
+    x_BTHW, labels_BTHW = batch.input_ids, batch.labels
+    model.check_tokens(x_BTHW)
+    B, T = x_BTHW.shape[:2]
+    cond_BTC = model.action_embeds(B, T, batch.actions, batch.latent_actions)
+    if model.training and self_reveal_ratio > 0:
+        x_BTHW = reveal_own_predictions(model, x_BTHW, cond_BTC, self_reveal_ratio)
+    x_BTSC = model.hidden_states(x_BTHW, cond_BTC)
+    relevant_BTS = rearrange(x_BTHW == model.mask_token_id, "B T H W -> B T (H W)")
+    relevant_BTS[:, 0] = False  # frame 0 is always given
+    return loss_at(model, x_BTSC, relevant_BTS, rearrange(labels_BTHW, "B T H W -> B T (H W)"))
+
+
+@torch.no_grad()
+def reveal_own_predictions(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
+                           ratio: float) -> torch.Tensor:
+    """Training inputs (B, T, H, W) as a later MaskGIT step sees them: for a share `ratio` of the examples, a
+    random share 1 - cos(pi/2 u), u ~ U(0, 1), of each frame's masked tokens is filled with the model's own greedy
+    prediction (one extra pass without gradients).
+
+    At inference the tokens revealed after step 1 are the model's guesses (on the sample world ~11 % of them
+    right), not the ground truth that published masking reveals; a model trained only on ground truth trusts
+    them, and its second step gets worse than its first.
+    """
+    chosen_B = torch.rand(x_BTHW.shape[0], device=x_BTHW.device) < ratio
+    if not chosen_B.any():
+        return x_BTHW
+    x_bTHW = x_BTHW[chosen_B]  # a copy
+    masked_bTHW = x_bTHW == model.mask_token_id
+    masked_bTHW[:, 0] = False
+    hidden_NC = model.hidden_states(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B])[
+        rearrange(masked_bTHW, "b T H W -> b T (H W)")]
+    logits_1VFN = rearrange(model.readout(hidden_NC), "N V F -> 1 V F N")
+    guesses_N = sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]  # greedy, as the sampler picks
+    share_bT11 = 1 - cosine_schedule(torch.rand(*masked_bTHW.shape[:2], 1, 1, device=x_BTHW.device))
+    reveal_bTHW = masked_bTHW & (torch.rand(masked_bTHW.shape, device=x_BTHW.device) < share_bT11)
+    x_bTHW[masked_bTHW] = torch.where(reveal_bTHW[masked_bTHW], guesses_N, model.mask_token_id)
+    return x_BTHW.index_put((chosen_B,), x_bTHW)
+
+
+def two_stream_loss(model, batch: MaskGITBatch) -> LossOutput:
+    """Loss and acc of the masked tokens of targets 1..T-1 (batch.target_ids), each over the clean context frames
+    < t (batch.input_ids), all (B, T, H, W).
+
+    The computation of the cached teacher-forced evaluation (context keys/values once, then all targets in one
+    pass), here with gradients: the cache's buffers are written in place, which autograd records like any slice
+    copy.
+    """
+    context_BTHW, targets_BTHW = batch.input_ids, batch.target_ids
+    model.check_tokens(context_BTHW)
+    model.check_tokens(targets_BTHW)
+    if targets_BTHW.shape != context_BTHW.shape:
+        raise ValueError(f"target_ids must have the shape of input_ids {tuple(context_BTHW.shape)}, got "
+                         f"{tuple(targets_BTHW.shape)}")
+    if (context_BTHW == model.mask_token_id).any():
+        raise ValueError("two-stream training: the context frames (input_ids) must not hold mask tokens")
+    B, T = context_BTHW.shape[:2]
+    cond_BTC = model.action_embeds(B, T, batch.actions, batch.latent_actions)
+    kv_cache = context_cache(model, context_BTHW, cond_BTC)
+    x_BTSC = model.hidden_states(targets_BTHW[:, 1:], None if cond_BTC is None else cond_BTC[:, 1:], 1,
+                                 TemporalMode.TARGETS, kv_cache)
+    relevant_BTS = rearrange(targets_BTHW[:, 1:] == model.mask_token_id, "B T H W -> B T (H W)")
+    return loss_at(model, x_BTSC, relevant_BTS, rearrange(batch.labels[:, 1:], "B T H W -> B T (H W)"))
+
+
+def loss_at(model, x_BTSC: torch.Tensor, relevant_BTS: torch.Tensor, labels_BTS: torch.Tensor) -> LossOutput:
+    """Read out the hidden states (B, T, S, C) where relevant (B, T, S) only -> factored CE and acc there."""
+    factored_NVF = model.readout(x_BTSC[relevant_BTS])
+    targets_N = labels_BTS[relevant_BTS]
+    num_relevant = max(targets_N.numel(), 1)
+    loss = factored_cross_entropy(factored_NVF, targets_N).sum() / num_relevant
+    acc = factored_argmax_correct(factored_NVF, targets_N).sum().float() / num_relevant
+    return LossOutput(loss=loss, acc=acc)

@@ -1,0 +1,79 @@
+"""Reference computations without the KV cache or the masked readout: the straightforward (published) procedures
+that genie/inference.py and genie/objectives.py are tested against and benchmarks/bench_eval.py compares with.
+
+Every MaskGIT step recomputes the whole window through `STMaskGIT.logits`, frames not yet known set to the mask
+token; the loss reads out the logits of every token.
+"""
+from typing import Optional, Tuple
+
+import torch
+from einops import rearrange
+
+from genie.evaluation import factored_argmax_correct, factored_cross_entropy
+from genie.inference import check_generation, check_teacher_forced, sample_targets
+from genie.masking import MaskGITBatch
+from genie.objectives import LossOutput
+from genie.sampling import maskgit_sample
+
+
+def full_logits_loss(model, batch: MaskGITBatch) -> LossOutput:
+    """The masked-token loss of genie/objectives.py (without self-reveal) from the logits of every token."""
+    x_BTHW, labels_BTHW = batch.input_ids, batch.labels
+    logits_BVFTHW = model.logits(x_BTHW, batch.actions, batch.latent_actions)[:, :, :, 1:]
+    relevant_BTHW = x_BTHW[:, 1:] == model.mask_token_id  # frame 0 is always given
+    num_relevant = relevant_BTHW.sum().clamp(min=1)
+    loss_BTHW = factored_cross_entropy(logits_BVFTHW, labels_BTHW[:, 1:])
+    correct_BTHW = factored_argmax_correct(logits_BVFTHW, labels_BTHW[:, 1:])
+    return LossOutput(loss=(loss_BTHW * relevant_BTHW).sum() / num_relevant,
+                      acc=(correct_BTHW & relevant_BTHW).sum().float() / num_relevant)
+
+
+@torch.no_grad()
+def generate_uncached(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_steps: int = 2,
+                      temperature: float = 0.0, unmask_mode: str = "random",
+                      generator: Optional[torch.Generator] = None, actions: Optional[torch.Tensor] = None,
+                      latent_actions: Optional[torch.Tensor] = None,
+                      control: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
+    """genie.inference.generate by full recomputation: same arguments, same results."""
+    check_generation(model, prompt_BTHW, num_new_frames)
+    B, T0 = prompt_BTHW.shape[:2]
+    total = T0 + num_new_frames
+    cond_BTC = model.action_embeds(B, total, actions, latent_actions, total if control else T0)
+    tokens_BTHW = torch.cat([prompt_BTHW, torch.full_like(prompt_BTHW[:, :1], model.mask_token_id)
+                             .expand(-1, num_new_frames, -1, -1)], dim=1)
+    all_logits = []
+    for t in range(T0, total):
+        def logits_fn(frame_BHW):
+            window_BTHW = tokens_BTHW.clone()
+            window_BTHW[:, t] = frame_BHW
+            return model.logits_unchecked(window_BTHW, cond_BTC)[:, :, :, t]
+
+        sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], model.mask_token_id, maskgit_steps,
+                                                  temperature, unmask_mode, generator)
+        tokens_BTHW[:, t] = sample_BHW
+        all_logits.append(logits_BVFHW)
+    return tokens_BTHW, torch.stack(all_logits, dim=3)
+
+
+@torch.no_grad()
+def teacher_forced_uncached(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperature: float = 0.0,
+                            unmask_mode: str = "random", generator: Optional[torch.Generator] = None,
+                            actions: Optional[torch.Tensor] = None,
+                            latent_actions: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+    """genie.inference.teacher_forced as the published evaluator computes it: every target and every step
+    recomputes the whole window with frames >= t masked; target t knows action rows < t."""
+    check_teacher_forced(model, x_BTHW)
+    B, T = x_BTHW.shape[:2]
+
+    def logits_fn(frames_NHW):
+        frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
+        per_target = []
+        for t in range(1, T):
+            window_BTHW = x_BTHW.clone()
+            window_BTHW[:, t] = frames_BnHW[:, t - 1]
+            window_BTHW[:, t + 1:] = model.mask_token_id
+            cond_BTC = model.action_embeds(B, T, actions, latent_actions, t)
+            per_target.append(model.logits_unchecked(window_BTHW, cond_BTC)[:, :, :, t])
+        return rearrange(torch.stack(per_target, dim=1), "B n V F H W -> (B n) V F H W")
+
+    return sample_targets(model, logits_fn, B, T, x_BTHW, maskgit_steps, temperature, unmask_mode, generator)
