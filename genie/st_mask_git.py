@@ -26,7 +26,7 @@ from torch import nn
 from common.errors import CheckpointError
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, load_json
-from genie.evaluation import factored_argmax_correct, factored_cross_entropy
+from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.factorization import factorize_token_ids
 from genie.sampling import maskgit_sample, sample_factored_tokens
 from genie.schedule import cosine_schedule
