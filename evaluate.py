@@ -1,13 +1,359 @@
 #!/usr/bin/env python
-"""The 1X challenge evaluator: `./evaluate.py --val_data_dir <dir> --checkpoint_dir <dir or hub id>`.
+"""The 1X challenge evaluator (FORMATS.md 5): temporally teacher-forced CE, token accuracy, LPIPS, s/frame.
 
-Prints progress on stderr and, as the last line on stdout, one JSON object with loss, acc, pred_lpips, gen_time,
-dec_time and num_examples. See `./evaluate.py --help`; the implementation is genie/evaluate.py (importable as
-`genie.evaluate`, also runnable as `python genie/evaluate.py`).
+    ./evaluate.py --val_data_dir data/val_v1.1 --checkpoint_dir 1x-technologies/GENIE_35M
+
+Each validation window (16 frames at stride 15, non-overlapping) is predicted frame by frame from ground-truth
+prefixes with MaskGIT; the model's temporal KV cache computes the ground-truth context once and all 15 targets in
+one batched pass per MaskGIT step. Progress goes to stderr; the last line printed on stdout is one JSON object with
+loss, acc, pred_lpips (null with --skip_lpips), gen_time, dec_time (s per frame; null when nothing is decoded) and
+num_examples. Evaluation runs in one process on one device: launched with WORLD_SIZE > 1 it exits with an error.
+
+Action-conditioned checkpoints (genie/actions.py) read their action streams from the dataset's actions/ and follow
+the challenge's rule: target frame t sees the actions of frames < t only (so with latent actions, the latent
+action of the transition into t, inferred from frame t itself, is not given). A checkpoint with latent actions
+adds three keys:
+- delta_psnr (Genie's controllability metric): from each window's first num_prompt_frames frames, the remaining
+  frames are generated twice, with the latent actions inferred from the ground truth and with uniformly random
+  ones (same seed, same sampling noise); delta_psnr = mean PSNR(inferred, gt) - mean PSNR(random, gt) over the
+  decoded generated frames (null with --skip_lpips: nothing is decoded);
+- action_probe_acc, action_majority_rate: lam/probe.py's probe of the latent action ids against the
+  true button combinations (actions/buttons.bin), fitted on --train_data_dir and scored on --val_data_dir (null
+  when either lacks buttons.bin or latent_action.bin).
 """
+import argparse
+import contextlib
+import json
+import logging
+import os
 import sys
+import time
+from pathlib import Path
+from typing import Optional
 
-from genie.evaluate import main
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Subset
+from tqdm import tqdm
+
+from common.cli import add_device_arg, resolve_device, setup_logging
+from common.config import ConfigError
+from common.errors import CheckpointError, DataMismatchError
+from common.images import psnr
+from data import RawTokenDataset, TokenDatasetError, write_token_dataset
+from genie.actions import LATENT_ACTION_NAME, check_action_streams, latent_action_sidecar, window_actions
+from genie.config import check_dataset_matches
+from genie.metrics import RunningMean, factored_cross_entropy, images_to_unit_range
+from genie.sampling import UNMASK_MODES
+from genie.inference import generate, teacher_forced
+from genie.model import STMaskGIT
+from lam.data import valid_targets
+from lam.probe import action_probe, transition_labels
+from magvit2 import VQModel
+from magvit2.lpips import LPIPS
+
+logger = logging.getLogger("evaluate")
+
+DEFAULT_VAL_DIR = "data/val_v1.1"
+SAMPLE_VAL_DIR = "data/sample/val"
+DEFAULT_TOKENIZER = "data/magvit2.ckpt"
+DEFAULT_TRAIN_DIR = "data/sample/train"
+BUTTONS_NAME = "buttons"  # the sample world's true actions, labels of the latent action probe
+LPIPS_CHUNK = 32  # frames per LPIPS / decoding call, bounds memory on CPU
+
+
+class EvaluationError(RuntimeError):
+    """An evaluation that cannot be set up (several processes, no tokenizer or LPIPS weights, an output directory
+    that holds something else); data that does not fit the checkpoint raises DataMismatchError."""
+
+
+def default_val_data_dir() -> str:
+    """data/val_v1.1, or the embedded sample world's validation split when only that exists."""
+    if not Path(DEFAULT_VAL_DIR).exists() and Path(SAMPLE_VAL_DIR).exists():
+        return SAMPLE_VAL_DIR
+    return DEFAULT_VAL_DIR
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--val_data_dir", default=None,
+                        help=f"Token dataset to evaluate on (default: {DEFAULT_VAL_DIR}, or {SAMPLE_VAL_DIR} when "
+                             f"only that exists).")
+    parser.add_argument("--checkpoint_dir", default="data/genie_model/final_checkpt",
+                        help="GENIE checkpoint directory (config.json + model.safetensors) or a Hugging Face hub id "
+                             "such as 1x-technologies/GENIE_35M.")
+    parser.add_argument("--batch_size", type=int, default=16, help="Windows per forward pass.")
+    parser.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT sampling steps per frame.")
+    parser.add_argument("--temperature", type=float, default=0.0,
+                        help="Sampling temperature (divides the logits); 0 samples greedily (argmax).")
+    parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
+                        help="Which tokens each MaskGIT step reveals: random (published default) or the most "
+                             "confident (greedy).")
+    parser.add_argument("--save_outputs_dir", default=None,
+                        help="Write the predictions as a token dataset in the generated layout: per window, "
+                             "frame 0 | predicted frames 1..T-1 | ground truth frames 1..T-1.")
+    parser.add_argument("--max_examples", type=int, default=None,
+                        help="Evaluate only the first N validation windows (keeps CPU runs short).")
+    parser.add_argument("--tokenizer_ckpt", default=None,
+                        help="MAGVIT2 tokenizer used to decode frames for LPIPS (default: the dataset metadata's "
+                             f"tokenizer_ckpt, else {DEFAULT_TOKENIZER}).")
+    parser.add_argument("--skip_lpips", action="store_true",
+                        help="Skip decoding and LPIPS (no tokenizer or LPIPS weights needed); pred_lpips and "
+                             "dec_time are reported as null.")
+    add_device_arg(parser)
+    parser.add_argument("--seed", type=int, default=0, help="Seed of the sampler's random numbers.")
+    parser.add_argument("--train_data_dir", default=DEFAULT_TRAIN_DIR,
+                        help="Token dataset whose latent actions and buttons fit the latent action probe (checkpoints "
+                             "with latent actions only).")
+    parser.add_argument("--window_size", type=int, default=16, help="Frames per validation window.")
+    parser.add_argument("--stride", type=int, default=15, help="Frames between a window's frames (30 Hz / 15 = 2 Hz).")
+    args = parser.parse_args(argv)
+    for name in ("batch_size", "maskgit_steps"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1")
+    if args.max_examples is not None and args.max_examples < 1:
+        parser.error("--max_examples must be >= 1")
+    if args.temperature < 0:
+        parser.error("--temperature must be >= 0")
+    if args.window_size < 2:
+        parser.error("--window_size must be >= 2 (frame 0 is the first prompt, frames 1.. are predicted)")
+    if args.val_data_dir is None:
+        args.val_data_dir = default_val_data_dir()
+    return args
+
+
+class FrameScorer:
+    """Decodes token frames with the MAGVIT2 tokenizer and scores predictions with AlexNet LPIPS."""
+
+    def __init__(self, tokenizer_ckpt: str, device: torch.device):
+        self.tokenizer = VQModel.from_checkpoint(tokenizer_ckpt, map_location=device).eval()
+        self.lpips = LPIPS().to(device)
+
+    def decode(self, tokens_NHW: torch.Tensor) -> torch.Tensor:
+        """(N, h, w) token ids -> uint8 images (N, H, W, 3)."""
+        return self.tokenizer.tokens_to_images(tokens_NHW)
+
+    def lpips_distances(self, images_a: torch.Tensor, images_b: torch.Tensor) -> torch.Tensor:
+        """uint8 (N, H, W, 3) pairs -> (N,) LPIPS distances, pixels scaled to [-1, 1]."""
+        return self.lpips(images_to_unit_range(images_a), images_to_unit_range(images_b))
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def batch_actions(model: STMaskGIT, batch: dict, device: torch.device, args: argparse.Namespace):
+    """(real actions (B, T, D) or None, latent ids (B, T) or None) of a loader batch, for the model's inputs."""
+    if not model.config.uses_actions:
+        return None, None
+    actions_BTD, latent_BT = window_actions(model.config, batch["actions"], where=f"{args.val_data_dir}/actions")
+    return (None if actions_BTD is None else actions_BTD.to(device),
+            None if latent_BT is None else latent_BT.to(device))
+
+
+def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
+             scorer: Optional[FrameScorer] = None, outputs: Optional[list] = None) -> dict:
+    """Run the teacher-forced protocol over `loader`; return the metrics dict (the JSON line's content).
+
+    outputs: when a list, per-window frames (prompt | predictions | ground truth) are appended to it as numpy.
+    """
+    metrics = {name: RunningMean() for name in ("loss", "acc", "pred_lpips", "gen_time", "dec_time")}
+    generator = torch.Generator(device=device).manual_seed(args.seed)
+    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
+                else contextlib.nullcontext())
+    num_examples = 0
+    progress = tqdm(loader, desc="evaluate", unit="batch", file=sys.stderr)
+    for batch in progress:
+        x_BTHW = batch["tokens"].to(device)
+        B, T = x_BTHW.shape[:2]
+        targets_BTHW = x_BTHW[:, 1:]
+        actions_BTD, latent_BT = batch_actions(model, batch, device, args)
+
+        _synchronize(device)
+        start = time.perf_counter()
+        with autocast:
+            samples_BTHW, logits_BVFTHW = teacher_forced(model, x_BTHW, args.maskgit_steps, args.temperature,
+                                                         args.unmask_mode, generator=generator,
+                                                         actions=actions_BTD, latent_actions=latent_BT)
+        _synchronize(device)
+        metrics["gen_time"].update(time.perf_counter() - start, B * (T - 1))
+
+        metrics["loss"].update(factored_cross_entropy(logits_BVFTHW, targets_BTHW).sum().item(), targets_BTHW.numel())
+        metrics["acc"].update((samples_BTHW == targets_BTHW).sum().item(), targets_BTHW.numel())
+        if scorer is not None:
+            score_frames(scorer, samples_BTHW.flatten(0, 1), targets_BTHW.flatten(0, 1), metrics, device)
+        if outputs is not None:
+            outputs.append(torch.cat([x_BTHW[:, :1], samples_BTHW, targets_BTHW], dim=1).cpu().numpy())
+        num_examples += B
+        progress.set_postfix({name: f"{m.mean:.4g}" for name, m in metrics.items() if m.mean is not None})
+
+    result = {name: metrics[name].mean for name in ("loss", "acc", "pred_lpips", "gen_time", "dec_time")}
+    result["num_examples"] = num_examples
+    return result
+
+
+def score_frames(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tensor, metrics: dict,
+                 device: torch.device) -> None:
+    """Decode predicted and ground-truth frames (timing the predictions' decoding) and add their LPIPS."""
+    for a in range(0, len(pred_NHW), LPIPS_CHUNK):
+        _synchronize(device)
+        start = time.perf_counter()
+        pred_images = scorer.decode(pred_NHW[a:a + LPIPS_CHUNK])
+        _synchronize(device)
+        metrics["dec_time"].update(time.perf_counter() - start, len(pred_images))
+        gt_images = scorer.decode(gt_NHW[a:a + LPIPS_CHUNK])
+        metrics["pred_lpips"].update(scorer.lpips_distances(pred_images, gt_images).sum().item(), len(pred_images))
+
+
+def decoded_psnr(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tensor) -> torch.Tensor:
+    """(N,) PSNR between decoded predicted and ground-truth token frames."""
+    return torch.cat([psnr(scorer.decode(pred_NHW[a:a + LPIPS_CHUNK]), scorer.decode(gt_NHW[a:a + LPIPS_CHUNK]),
+                           value_range=(0.0, 255.0))
+                      for a in range(0, len(pred_NHW), LPIPS_CHUNK)])
+
+
+@torch.no_grad()
+def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
+               scorer: FrameScorer) -> float:
+    """Genie's delta-PSNR: mean PSNR of frames generated with the ground truth's latent actions minus that with
+    uniformly random latent actions, over the frames after the config's num_prompt_frames (see the module doc).
+    Real action inputs, if the model also has them, stay prompt-only in both runs."""
+    P, K = model.config.num_prompt_frames, model.config.num_latent_actions
+    if P >= args.window_size:
+        raise DataMismatchError(f"delta_psnr: the checkpoint's num_prompt_frames {P} leaves no frame to generate in "
+                              f"windows of {args.window_size} frames")
+    kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
+                  control=True)
+    # same sampling noise in both runs: only the latent actions differ
+    generators = [torch.Generator(device=device).manual_seed(args.seed) for _ in range(2)]
+    random_actions = torch.Generator().manual_seed(args.seed + 1)
+    psnrs = [RunningMean(), RunningMean()]
+    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
+                else contextlib.nullcontext())
+    for batch in tqdm(loader, desc="delta_psnr", unit="batch", file=sys.stderr):
+        x_BTHW = batch["tokens"].to(device)
+        B, T = x_BTHW.shape[:2]
+        actions_BTD, latent_BT = batch_actions(model, batch, device, args)
+        if actions_BTD is not None:
+            actions_BTD = actions_BTD.clone()
+            actions_BTD[:, P:] = float("nan")  # unknown after the prompt
+        random_BT = latent_BT.clone()
+        random_BT[:, P:] = torch.randint(0, K, (B, T - P), generator=random_actions).to(device)
+        gt_NHW = x_BTHW[:, P:].flatten(0, 1)
+        for played_BT, generator, mean in zip((latent_BT, random_BT), generators, psnrs):
+            with autocast:
+                tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, generator=generator, actions=actions_BTD,
+                                          latent_actions=played_BT, **kwargs)
+            frame_psnr = decoded_psnr(scorer, tokens_BTHW[:, P:].flatten(0, 1), gt_NHW)
+            mean.update(frame_psnr.sum().item(), len(frame_psnr))
+    return psnrs[0].mean - psnrs[1].mean
+
+
+def probe_examples(dataset: RawTokenDataset, default_stride: int):
+    """(latent action ids, true button-combination labels) of the transitions with a LAM-inferred id, or None when
+    the dataset lacks buttons.bin or latent_action.bin. The transition stride and LAM context come from
+    actions/latent_action.json (lam/label.py), else --stride and one past frame."""
+    if BUTTONS_NAME not in dataset.actions or LATENT_ACTION_NAME not in dataset.actions:
+        logger.warning("%s: no actions/%s.bin or actions/%s.bin: the latent action probe is skipped",
+                       dataset.data_dir, BUTTONS_NAME, LATENT_ACTION_NAME)
+        return None
+    sidecar = latent_action_sidecar(dataset)
+    stride = int(sidecar.get("latent_action_stride", default_stride))
+    num_past = int(sidecar.get("latent_action_num_past_frames", 1))
+    segment_ids = (np.asarray(dataset.segment_ids) if dataset.segment_ids is not None
+                   else np.zeros(dataset.metadata["num_images"], dtype=np.int64))
+    targets = valid_targets(segment_ids, stride * num_past)
+    codes = np.asarray(dataset.actions[LATENT_ACTION_NAME][:, 0])[targets].round().astype(np.int64)
+    labels = transition_labels(np.asarray(dataset.actions[BUTTONS_NAME]), targets, stride)
+    return codes, labels
+
+
+def latent_action_probe(val_ds: RawTokenDataset, train_data_dir, stride: int) -> dict:
+    """action_probe_acc and action_majority_rate (None when a split lacks the files)."""
+    none = {"action_probe_acc": None, "action_majority_rate": None}
+    if not Path(train_data_dir).is_dir():
+        logger.warning("--train_data_dir %s not found: the latent action probe is skipped", train_data_dir)
+        return none
+    train_ds = RawTokenDataset(train_data_dir, window_size=1, filter_interrupts=False, check_tokens=False)
+    train, val = probe_examples(train_ds, stride), probe_examples(val_ds, stride)
+    if train is None or val is None or not len(train[0]) or not len(val[0]):
+        return none
+    result = action_probe(train[0], train[1], val[0], val[1])
+    return {"action_probe_acc": result["probe_acc"], "action_majority_rate": result["majority_rate"]}
+
+
+def save_outputs(out_dir: str, windows: list, dataset, window_size: int) -> None:
+    """Write evaluated windows in the generated layout (FORMATS.md 1), one segment id per window."""
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        meta_path = out / "metadata.json"
+        previous = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        if "num_prompt_frames" not in previous:
+            raise EvaluationError(f"--save_outputs_dir {out} exists and does not hold earlier outputs (no "
+                                  f"num_prompt_frames in its metadata.json); choose a new or empty directory")
+    video_WFHW = np.concatenate(windows)
+    frames_per_window = video_WFHW.shape[1]
+    segment_ids = np.repeat(np.arange(len(video_WFHW), dtype=np.int32), frames_per_window)
+    keep = {k: v for k, v in dataset.metadata.items() if k in ("token_dtype", "vocab_size", "hz", "tokenizer_ckpt")}
+    write_token_dataset(out, video_WFHW.reshape(-1, *video_WFHW.shape[2:]), segment_ids=segment_ids,
+                        metadata={**keep, "num_prompt_frames": 1, "window_size": window_size,
+                                  "num_examples": len(video_WFHW)}, overwrite=True)
+
+
+def run(args: argparse.Namespace) -> dict:
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    if world_size > 1:
+        raise EvaluationError(f"evaluation runs in a single process, but WORLD_SIZE={world_size}: launch it with "
+                              f"plain `python evaluate.py` (not torchrun / accelerate launch with several processes)")
+    device = resolve_device(args.device)
+    torch.manual_seed(args.seed)
+
+    model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device).eval()
+    dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
+                              filter_overlaps=True)
+    check_dataset_matches(model.config, dataset, args.window_size, f"checkpoint {args.checkpoint_dir}",
+                          exact_window=False)
+    if model.config.uses_actions:
+        check_action_streams(model.config, dataset)
+    num_windows = len(dataset) if args.max_examples is None else min(args.max_examples, len(dataset))
+    loader = DataLoader(Subset(dataset, range(num_windows)), batch_size=args.batch_size, shuffle=False)
+    logger.info("evaluating %d windows of %s with %s on %s", num_windows, args.val_data_dir, args.checkpoint_dir,
+                device)
+
+    scorer = None
+    if not args.skip_lpips:
+        tokenizer_ckpt = args.tokenizer_ckpt or dataset.metadata.get("tokenizer_ckpt") or DEFAULT_TOKENIZER
+        try:
+            scorer = FrameScorer(tokenizer_ckpt, device)
+        except (FileNotFoundError, ValueError) as e:  # missing tokenizer / LPIPS weights, unreadable checkpoint
+            raise EvaluationError(f"cannot set up decoding + LPIPS: {e}\nPass --skip_lpips to evaluate without "
+                                  f"decoding frames.") from None
+    outputs = [] if args.save_outputs_dir else None
+    with torch.no_grad():
+        result = evaluate(model, loader, args, device, scorer, outputs)
+        if model.config.num_latent_actions:
+            if scorer is None:
+                logger.warning("--skip_lpips: nothing is decoded, so delta_psnr is null")
+            result["delta_psnr"] = None if scorer is None else delta_psnr(model, loader, args, device, scorer)
+            result.update(latent_action_probe(dataset, args.train_data_dir, args.stride))
+    if outputs is not None:
+        save_outputs(args.save_outputs_dir, outputs, dataset, args.window_size)
+    return result
+
+
+def main(argv=None) -> int:
+    setup_logging()
+    args = parse_args(argv)
+    try:
+        result = run(args)
+    except (EvaluationError, DataMismatchError, TokenDatasetError, ConfigError, CheckpointError, FileNotFoundError,
+            NotADirectoryError) as e:
+        print(f"evaluate.py: error: {e}", file=sys.stderr)
+        return 1
+    print(json.dumps(result))
+    return 0
+
 
 if __name__ == "__main__":
     sys.exit(main())

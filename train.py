@@ -24,7 +24,6 @@ import contextlib
 import dataclasses
 import importlib.util
 import logging
-import math
 import os
 import signal
 import sys
@@ -41,13 +40,14 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
-from common.errors import TrainingError
+from common.cli import setup_logging
+from common.errors import CheckpointError, DataMismatchError, TrainingError
+from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
 from genie.masking import get_maskgit_collator
-from common.errors import CheckpointError
 from genie.actions import action_statistics, check_action_streams, latent_action_sidecar, stream_dims
 from genie.checkpoint import load_state_dict_checked
-from genie.config import ConfigError, GenieConfig, TrainingRecipe
+from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
 from genie.masking import MaskGITBatch
 from genie.model import STMaskGIT
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
@@ -57,9 +57,6 @@ from common.train_state import (TrainingStateError, ResumableBatchSampler, atomi
 logger = logging.getLogger("train")
 
 CONFIG_DIR = Path(genie.configs.__file__).parent
-LR_SCHEDULES = ("constant", "constant_with_warmup", "linear", "cosine", "custom_cosine")
-
-
 
 
 def first_existing(*paths) -> str:
@@ -129,7 +126,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--compile", action="store_true", help="torch.compile the model on CPU too (default: CUDA only).")
     g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
     g.add_argument("--overfit_first_batch", action="store_true",
-                   help="Debug: train and validate on the first batch of the training data only.")
+                   help="Sanity check: train and validate on the first batch of the training data only.")
 
     g = p.add_argument_group("evaluation, checkpoints and logging")
     g.add_argument("--output_dir", default="data/genie_model",
@@ -145,11 +142,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--report_to", default="none", choices=("none", "tensorboard", "wandb"),
                    help="Metrics tracker (logs are also written with `logging`).")
 
-    g = p.add_argument_group("testing hooks (used by the test suite; not for real runs)")
-    g.add_argument("--debug_inject_nan_at_steps", type=int, nargs="*", default=[],
-                   help="Test only: make the loss NaN in these optimizer steps (1-based step numbers).")
-    g.add_argument("--debug_step_sleep", type=float, default=0.0,
-                   help="Test only: sleep this many seconds after each optimizer step (to kill runs mid-training).")
+    # Test-suite hooks, hidden from --help: make the loss NaN in these (1-based) optimizer steps, and sleep after
+    # each step so that tests can kill a run mid-training.
+    p.add_argument("--debug_inject_nan_at_steps", type=int, nargs="*", default=[], help=argparse.SUPPRESS)
+    p.add_argument("--debug_step_sleep", type=float, default=0.0, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     for name in ("window_size", "stride", "per_device_train_batch_size", "per_device_eval_batch_size",
                  "gradient_accumulation_steps", "max_nonfinite_steps"):
@@ -168,36 +164,31 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 # ---------------------------------------------------------------- setup
 
-def load_config(path):
-    """(GenieConfig, TrainingRecipe) of a --genie_config file (one JSON holds both, as the published one does)."""
+def config_path(path) -> str:
+    """--genie_config, else the sample world's config when it exists, else the tiny test config."""
     if path is None:
         path = first_existing(CONFIG_DIR / "sample_world.json", CONFIG_DIR / "tiny_test.json")
+    return str(path)
+
+
+def load_config(path):
+    """(GenieConfig, TrainingRecipe) of a --genie_config file (one JSON holds both, as the published one does)."""
+    path = config_path(path)
     return GenieConfig.from_pretrained(path), TrainingRecipe.from_pretrained(path)
-
-
-def check_data_matches_config(dataset: RawTokenDataset, config: GenieConfig, window_size: int) -> None:
-    meta, where = dataset.metadata, dataset.data_dir / "metadata.json"
-    if window_size != config.T:
-        raise TrainingError(f"--window_size {window_size} must equal the model config's T={config.T}")
-    if meta["s"] ** 2 != config.S:
-        raise TrainingError(f"{where}: frames are {meta['s']}x{meta['s']} = {meta['s'] ** 2} tokens but the model "
-                            f"config has S={config.S}; use a config with S={meta['s'] ** 2}")
-    if meta["vocab_size"] != config.image_vocab_size:
-        raise TrainingError(f"{where}: vocab_size {meta['vocab_size']} differs from the model config's "
-                            f"image_vocab_size {config.image_vocab_size}")
 
 
 def build_datasets(args, config: GenieConfig, batch_items: int):
     """(train, val) datasets; with --overfit_first_batch both are the first `batch_items` training windows."""
     train_ds = RawTokenDataset(args.train_data_dir, window_size=args.window_size, stride=args.stride,
                                filter_overlaps=args.filter_overlaps)
-    check_data_matches_config(train_ds, config, args.window_size)
+    source = f"model config {config_path(args.genie_config)}"
+    check_dataset_matches(config, train_ds, args.window_size, source)
     if args.overfit_first_batch:
         subset = Subset(train_ds, range(min(batch_items, len(train_ds))))
         return subset, subset
     val_ds = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
                              filter_overlaps=True)
-    check_data_matches_config(val_ds, config, args.window_size)
+    check_dataset_matches(config, val_ds, args.window_size, source)
     return train_ds, val_ds
 
 
@@ -236,27 +227,6 @@ def build_optimizer(model, args, fused: bool) -> torch.optim.AdamW:
               {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
     return torch.optim.AdamW(groups, lr=args.learning_rate, betas=(args.adam_beta_1, args.adam_beta_2),
                              eps=args.adam_eps, fused=fused or None)
-
-
-def lr_multiplier(kind: str, warmup: int, total: int):
-    """step -> factor of the peak learning rate (Hugging Face semantics; custom_cosine as in the 1X script)."""
-    def factor(step: int) -> float:
-        if kind == "constant":
-            return 1.0
-        if kind == "custom_cosine":
-            if step < warmup:
-                return (step + 1) / warmup
-            progress = (step - warmup) / max(1, total - warmup)
-            return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
-        if step < warmup:
-            return step / max(1, warmup)
-        if kind == "constant_with_warmup":
-            return 1.0
-        progress = (step - warmup) / max(1, total - warmup)
-        if kind == "linear":
-            return max(0.0, 1.0 - progress)
-        return max(0.0, 0.5 * (1 + math.cos(math.pi * progress)))  # cosine
-    return factor
 
 
 def batch_seed(*keys: int) -> int:
@@ -548,10 +518,11 @@ def check_tracker_installed(report_to: str) -> None:
         raise TrainingError(f"--report_to {report_to} needs the {packages[0]} package: pip install {packages[0]}")
 
 
-def setup_logging(accelerator: Accelerator) -> None:
-    logging.basicConfig(format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S",
-                        level=logging.INFO if accelerator.is_main_process else logging.WARNING)
-    logger.setLevel(logging.INFO if accelerator.is_main_process else logging.WARNING)
+def setup_process_logging(accelerator: Accelerator) -> None:
+    """Only the main process logs progress; the others log warnings and errors."""
+    level = logging.INFO if accelerator.is_main_process else logging.WARNING
+    setup_logging(level)
+    logger.setLevel(level)
 
 
 def run(args) -> None:
@@ -564,7 +535,7 @@ def run(args) -> None:
     launched_world = int(os.environ.get("WORLD_SIZE", "0"))
     accelerator = Accelerator(mixed_precision=mixed, log_with=None if args.report_to == "none" else args.report_to,
                               project_dir=args.output_dir, cpu=launched_world > 1 and not torch.cuda.is_available())
-    setup_logging(accelerator)
+    setup_process_logging(accelerator)
     if launched_world and launched_world != accelerator.num_processes:
         raise TrainingError(f"launched as {launched_world} processes (WORLD_SIZE) but accelerate set up "
                             f"{accelerator.num_processes}; each process would train alone")
@@ -597,7 +568,8 @@ def main(argv=None) -> None:
     args = parse_args(argv)
     try:
         run(args)
-    except (TrainingError, TrainingStateError, CheckpointError, ConfigError, TokenDatasetError, OSError) as e:
+    except (TrainingError, TrainingStateError, CheckpointError, ConfigError, DataMismatchError, TokenDatasetError,
+            OSError) as e:
         logger.error("%s", e)
         sys.exit(f"train.py: error: {e}")
 

@@ -20,12 +20,12 @@ from pathlib import Path
 from typing import Callable, List, Optional, Sequence, Union
 
 import numpy as np
-import torch
 from matplotlib.figure import Figure
 from PIL import Image, ImageDraw, ImageFont
 
-from data import RawTokenDataset, TokenDatasetError
+from common.cli import add_device_arg, resolve_device, setup_logging
 from common.config import ConfigError
+from data import RawTokenDataset, TokenDatasetError
 from magvit2 import CheckpointError, VQModel
 
 logger = logging.getLogger(__name__)
@@ -62,8 +62,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     labels.add_argument("--label_action", default=None,
                         help="label each frame with its values of the action stream actions/<NAME>.bin of the token "
                              "dir (e.g. latent_action)")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
-                        help="torch device for decoding (default: cuda when present, else cpu)")
+    add_device_arg(parser, help="torch device for decoding: auto (cuda when available, else cpu), cpu, cuda or cuda:N")
     parser.add_argument("--batch_size", type=int, default=16, help="frames decoded per forward pass")
     parser.add_argument("--allow_unsafe_pickle", action="store_true",
                         help="let torch.load run code from a .ckpt that weights_only loading refuses "
@@ -284,7 +283,7 @@ def visualize_frames(model: VQModel, tokens: np.ndarray, out_dir: Path, offset: 
 
 
 def main(argv=None) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging()
     args = parse_args(argv)
     try:
         dataset = RawTokenDataset(args.token_dir, window_size=1, filter_interrupts=False)
@@ -294,7 +293,7 @@ def main(argv=None) -> None:
             labels = action_labels(dataset, args.label_action)
         ckpt = resolve_tokenizer_ckpt(args.tokenizer_ckpt, metadata)
         model = VQModel.from_checkpoint(ckpt, allow_unsafe_pickle=args.allow_unsafe_pickle,
-                                        map_location=args.device).eval()
+                                        map_location=resolve_device(args.device)).eval()
         out_dir = Path(args.output_dir if args.output_dir is not None else args.token_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         if all(key in metadata for key in ("num_prompt_frames", "window_size")):

@@ -1,6 +1,6 @@
 """Challenge evaluation and generation speed: full recomputation (the published protocol) vs the temporal KV cache.
 
-    python benchmarks/bench_eval.py                      # 8 layers, d_model 256, 16x16 tokens, T 16, CPU fp32
+    python benchmarks/bench_eval.py --device cpu         # 8 layers, d_model 256, 16x16 tokens, T 16, CPU fp32
     python benchmarks/bench_eval.py --device cuda --dtype bf16 --num_layers 32   # GENIE_35M shape on a GPU
 
 Both evaluators run the same weights on the same synthetic validation windows (written with the data API and read
@@ -21,9 +21,10 @@ from pathlib import Path
 import numpy as np
 import torch
 import genie
+from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device
 from data import RawTokenDataset, write_token_dataset
 from genie import GenieConfig, STMaskGIT
-from genie.evaluation import factored_cross_entropy
+from genie.metrics import factored_cross_entropy
 from genie.inference import generate, teacher_forced
 from genie.reference import generate_uncached, teacher_forced_uncached
 
@@ -39,13 +40,11 @@ def parse_args():
     p.add_argument("--num_windows", type=int, default=2, help="Validation windows to evaluate.")
     p.add_argument("--batch_size", type=int, default=1, help="Windows per forward pass.")
     p.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT steps per frame.")
-    p.add_argument("--device", default="cpu", help="cpu or cuda.")
+    add_device_arg(p)
     p.add_argument("--dtype", choices=("fp32", "bf16"), default="fp32", help="bf16 runs under autocast (CUDA).")
     p.add_argument("--seed", type=int, default=0, help="Seed of the weights, data and sampler.")
     p.add_argument("--skip_generation", action="store_true", help="Only benchmark teacher-forced evaluation.")
-    p.add_argument("--num_threads", type=int, default=None,
-                   help="CPU threads for torch (default: torch's choice). On a busy shared machine, 1 thread gives "
-                        "steadier timings: small multi-threaded ops stall when the cores are oversubscribed.")
+    add_num_threads_arg(p)
     return p.parse_args()
 
 
@@ -132,9 +131,8 @@ def sync(device):
 
 def main():
     args = parse_args()
-    if args.num_threads:
-        torch.set_num_threads(args.num_threads)
-    device = torch.device(args.device)
+    apply_num_threads(args.num_threads)
+    device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     model = build_model(args).to(device)
     config = model.config

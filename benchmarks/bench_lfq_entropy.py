@@ -13,6 +13,7 @@ import time
 
 import torch
 
+from common.cli import add_device_arg, resolve_device
 from magvit2.lfq import entropy_terms, naive_entropy_terms
 
 METHODS = {"factorized": entropy_terms, "naive": naive_entropy_terms}
@@ -61,17 +62,17 @@ def main() -> None:
     parser.add_argument("--batch_size", type=int, default=8, help="images per batch")
     parser.add_argument("--latent_side", type=int, default=16, help="latent grid side (16 for 256x256 images)")
     parser.add_argument("--num_channels", type=int, default=18, help="LFQ bits; the codebook has 2^num_channels codes")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
-                        help="cpu or cuda (default: cuda when present)")
+    add_device_arg(parser)
     parser.add_argument("--skip_naive", action="store_true", help="do not run the naive form (it needs ~10 GiB)")
     args = parser.parse_args()
+    device = str(resolve_device(args.device))
     n = args.batch_size * args.latent_side ** 2
     print(f"LFQ entropy loss, forward + backward: N = {n} latents, codebook 2^{args.num_channels}, "
-          f"device {args.device}")
+          f"device {device}")
     results = {}
     for method in ["factorized"] + ([] if args.skip_naive else ["naive"]):
-        run = measure if args.device == "cuda" else measure_in_fresh_process
-        results[method] = run(method, n, args.num_channels, args.device)
+        run = measure if device == "cuda" else measure_in_fresh_process
+        results[method] = run(method, n, args.num_channels, device)
         r = results[method]
         print(f"  {method:>10}: peak {r['peak_bytes'] / 2 ** 20:10.1f} MiB   {r['seconds']:7.3f} s   "
               f"loss {r['loss']:.6f}")

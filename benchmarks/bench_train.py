@@ -1,6 +1,6 @@
 """Training throughput (tokens/s) of STMaskGIT: the issue's reference shape, one full optimizer step per iteration.
 
-    python benchmarks/bench_train.py                       # 8 layers, d_model 256, T 16, 16x16, batch 2, fp32, CPU
+    python benchmarks/bench_train.py --device cpu          # 8 layers, d_model 256, T 16, 16x16, batch 2, fp32, CPU
     python benchmarks/bench_train.py --mixed_precision compare  # fp32 vs CPU bf16 autocast (avx512_bf16 / AMX)
     python benchmarks/bench_train.py --readout compare          # logits of every token vs of the masked ones only
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
@@ -15,6 +15,7 @@ import time
 
 import torch
 
+from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device
 from genie.masking import get_maskgit_collator
 from genie.attention import set_cpu_bf16_math
 from genie.config import GenieConfig
@@ -36,7 +37,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--batch_size", type=int, default=2, help="Windows per step.")
     p.add_argument("--warmup_steps", type=int, default=2, help="Untimed steps first.")
     p.add_argument("--steps", type=int, default=5, help="Timed steps.")
-    p.add_argument("--device", default="cpu", help="torch device.")
+    add_device_arg(p)
     p.add_argument("--mixed_precision", default="no", choices=("no", "bf16", "compare"),
                    help="bf16 autocast (CUDA, or CPUs with native bf16 such as avx512_bf16); compare: fp32, then "
                         "bf16 with torch's fused attention kernel, then bf16 with the written-out CPU path for the "
@@ -45,8 +46,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="masked: the loss reads out only the masked tokens it counts (what train.py does); full: "
                         "logits of every token, as published; compare: full, then masked, with the ratio.")
     p.add_argument("--compile", action="store_true", help="torch.compile the model.")
-    p.add_argument("--num_threads", type=int, default=None,
-                   help="torch CPU threads (default: torch's choice, one per core); use 1 on a shared machine.")
+    add_num_threads_arg(p)
     p.add_argument("--profile", action="store_true", help="Print the top operators of one profiled step.")
     return p.parse_args(argv)
 
@@ -114,9 +114,8 @@ def main(argv=None) -> None:
     args = parse_args(argv)
     if args.readout == "compare" and args.mixed_precision == "compare":
         raise SystemExit("bench_train.py: compare one thing at a time (--readout compare or --mixed_precision compare)")
-    device = torch.device(args.device)
-    if args.num_threads is not None:
-        torch.set_num_threads(args.num_threads)
+    device = resolve_device(args.device)
+    apply_num_threads(args.num_threads)
     params = sum(p.numel() for p in build(args, device)[1].parameters())
     print(f"STMaskGIT {args.num_layers} layers, d_model {args.d_model}, T {args.T}, {args.s}x{args.s}, "
           f"{params / 1e6:.1f} M params, batch {args.batch_size}, {device.type}, threads {torch.get_num_threads()}")

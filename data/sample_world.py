@@ -24,7 +24,7 @@ walker stays trapped in a closet, is replayed with the next seed (is_good_episod
 (other seeds) on every training map plus every episode of HELDOUT_MAPS, a map never seen in training.
 
 Usage:
-    python -m data.sample_world --out_dir data/sample/raw --seed 0
+    python -m data.sample_world --output_dir data/sample/raw --seed 0
 """
 import argparse
 import contextlib
@@ -44,6 +44,8 @@ from typing import Optional, Sequence
 import numpy as np
 from PIL import Image
 from tqdm import tqdm
+
+from common.cli import add_hidden_alias
 
 HZ = 35  # Doom's fixed tic rate; we record every tic.
 BUTTON_NAMES = ("MOVE_FORWARD", "MOVE_BACKWARD", "TURN_LEFT", "TURN_RIGHT", "USE")
@@ -502,7 +504,8 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescrip
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=_HelpFormatter)
-    p.add_argument("--out_dir", default="data/sample/raw", help="directory for train.npz, val.npz and the sidecar")
+    p.add_argument("--output_dir", default="data/sample/raw", help="directory for train.npz, val.npz and the sidecar")
+    add_hidden_alias(p, "--out_dir", "output_dir")  # the spelling before train.py's was adopted
     p.add_argument("--seed", type=int, default=0, help="master seed; every episode's seed derives from it")
     p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS), help="freedoom2.wad maps for training")
     p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
@@ -519,7 +522,7 @@ def main():
         check_maps(args.train_maps + args.val_maps)
     except ValueError as e:
         p.error(str(e))
-    build_sample_world(args.out_dir, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
+    build_sample_world(args.output_dir, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=args.val_episodes,
                        episode_len=args.episode_len, workers=args.workers, overwrite=args.overwrite)
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from common.config import ConfigError, dataclass_from_dict, load_json
+from common.errors import DataMismatchError
 
 
 @dataclass
@@ -192,3 +193,25 @@ def save_config(json_path, config: GenieConfig, recipe: Optional[TrainingRecipe]
     """Write config.json: the architecture, plus the recipe it was trained with when known (as published)."""
     d = {**config.to_dict(), **(recipe.to_dict() if recipe is not None else {})}
     Path(json_path).write_text(json.dumps(d, indent=2, sort_keys=True) + "\n")
+
+
+def check_dataset_matches(config: GenieConfig, dataset, window_size: int, source: str,
+                          exact_window: bool = True) -> None:
+    """Raise DataMismatchError, naming the dataset's metadata.json and `source` (the model config file or checkpoint
+    the config came from), when a model of `config` cannot read `dataset`'s windows of `window_size` frames.
+
+    exact_window: training and generation need window_size == T; evaluation also accepts shorter windows.
+    """
+    meta, where = dataset.metadata, dataset.data_dir / "metadata.json"
+    if exact_window and window_size != config.T:
+        raise DataMismatchError(f"--window_size {window_size} must equal the model's T={config.T} ({source})")
+    if window_size > config.T:
+        raise DataMismatchError(f"--window_size {window_size} is longer than the model's T={config.T} frames "
+                                f"({source})")
+    side = meta["s"]
+    if side ** 2 != config.S:
+        raise DataMismatchError(f"{where}: frames are {side}x{side} = {side ** 2} tokens per frame but the model has "
+                                f"S={config.S} ({source}); use a model with S={side ** 2}")
+    if meta["vocab_size"] != config.image_vocab_size:
+        raise DataMismatchError(f"{where}: vocab_size {meta['vocab_size']} differs from the model's image_vocab_size "
+                                f"{config.image_vocab_size} ({source}): they come from different tokenizers")

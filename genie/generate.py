@@ -28,18 +28,16 @@ import torch
 from einops import rearrange
 from tqdm.auto import tqdm
 
-from data import RawTokenDataset, TokenDatasetError, write_token_dataset
+from common.cli import add_device_arg, resolve_device, setup_logging
 from common.config import ConfigError
-from common.errors import CheckpointError
+from common.errors import CheckpointError, DataMismatchError
+from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.actions import LATENT_ACTION_NAME, check_action_streams, stack_streams, window_actions
+from genie.config import check_dataset_matches
 from genie.inference import generate as generate_frames, teacher_forced
 from genie.model import STMaskGIT
 
 logger = logging.getLogger("genie.generate")
-
-
-class GenerationError(ValueError):
-    """Arguments, checkpoint and data that do not fit together."""
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -75,7 +73,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--temperature", type=float, default=0.0, help="Sampling temperature; 0 samples greedily.")
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
                    help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
-    p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu).")
+    add_device_arg(p)
     p.add_argument("--seed", type=int, default=0, help="Seed of the sampling randomness.")
     args = p.parse_args(argv)
     for name in ("window_size", "stride", "num_examples", "example_stride", "batch_size", "maskgit_steps"):
@@ -103,32 +101,25 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def check_compatible(model: STMaskGIT, dataset: RawTokenDataset, args) -> None:
-    """Clear errors when the checkpoint, the data and the arguments disagree on shapes or vocabulary."""
-    config, meta = model.config, dataset.metadata
-    where = dataset.data_dir / "metadata.json"
-    if args.window_size != config.T:
-        raise GenerationError(f"--window_size {args.window_size} differs from the checkpoint's T={config.T} "
-                              f"({args.checkpoint_dir}/config.json)")
-    if meta["s"] ** 2 != config.S:
-        raise GenerationError(f"{where}: frames are {meta['s']}x{meta['s']} tokens but the checkpoint "
-                              f"{args.checkpoint_dir} expects S={config.S} tokens per frame")
-    if meta["vocab_size"] != config.image_vocab_size:
-        raise GenerationError(f"{where}: vocab_size {meta['vocab_size']} differs from the checkpoint's "
-                              f"image_vocab_size {config.image_vocab_size} ({args.checkpoint_dir})")
+    """Clear errors when the checkpoint, the data and the arguments disagree on shapes, vocabulary, actions or the
+    examples asked for."""
+    config = model.config
+    check_dataset_matches(config, dataset, args.window_size, f"checkpoint {args.checkpoint_dir}")
     K = config.num_latent_actions
     if args.latent_actions is not None:
         if not K:
-            raise GenerationError(f"--latent_actions: the checkpoint {args.checkpoint_dir} takes no latent actions "
-                                  f"(num_latent_actions is 0 in its config.json)")
+            raise DataMismatchError(f"--latent_actions: the checkpoint {args.checkpoint_dir} takes no latent "
+                                    f"actions (num_latent_actions is 0 in its config.json)")
         bad = [a for a in args.latent_actions if not 0 <= a < K]
         if bad:
-            raise GenerationError(f"--latent_actions: ids {bad} are outside [0, {K}) (the checkpoint's LAM codebook)")
+            raise DataMismatchError(f"--latent_actions: ids {bad} are outside [0, {K}) (the checkpoint's LAM "
+                                    f"codebook)")
     if args.actions_from_data and not config.uses_actions:
-        raise GenerationError(f"--actions_from_data: the checkpoint {args.checkpoint_dir} takes no actions")
+        raise DataMismatchError(f"--actions_from_data: the checkpoint {args.checkpoint_dir} takes no actions")
     last = args.example_ind + (args.num_examples - 1) * args.example_stride
     if last >= len(dataset):
-        raise GenerationError(f"{dataset.data_dir}: examples {args.example_ind}..{last} requested but the dataset has "
-                              f"{len(dataset)} windows of {args.window_size} frames with stride {args.stride}")
+        raise DataMismatchError(f"{dataset.data_dir}: examples {args.example_ind}..{last} requested but the dataset "
+                                f"has {len(dataset)} windows of {args.window_size} frames with stride {args.stride}")
 
 
 def load_windows(dataset: RawTokenDataset, indices, s: int) -> torch.Tensor:
@@ -197,7 +188,7 @@ def played_latent_actions(latent_BT: torch.Tensor, args, K: int) -> torch.Tensor
 
 def generate(args) -> dict:
     """Run generation; returns the metadata written."""
-    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    device = resolve_device(args.device)
     model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device)
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride)
     check_compatible(model, dataset, args)
@@ -251,11 +242,10 @@ def generate(args) -> dict:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    logging.basicConfig(format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S",
-                        level=logging.INFO)
+    setup_logging()
     try:
         generate(args)
-    except (GenerationError, TokenDatasetError, ConfigError, CheckpointError, OSError) as e:
+    except (DataMismatchError, TokenDatasetError, ConfigError, CheckpointError, OSError) as e:
         sys.exit(f"generate.py: error: {e}")
 
 

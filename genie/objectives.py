@@ -12,7 +12,7 @@ import torch
 from einops import rearrange
 
 from genie.config import TrainingRecipe
-from genie.evaluation import factored_argmax_correct, factored_cross_entropy
+from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import context_cache
 from genie.masking import MaskGITBatch
 from genie.sampling import sample_factored_tokens

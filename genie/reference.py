@@ -9,7 +9,7 @@ from typing import Optional, Tuple
 import torch
 from einops import rearrange
 
-from genie.evaluation import factored_argmax_correct, factored_cross_entropy
+from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import check_generation, check_teacher_forced, sample_targets
 from genie.masking import MaskGITBatch
 from genie.objectives import LossOutput

@@ -23,10 +23,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
 from common.config import load_json
-from lam.model import LAM
-from lam.data import infer_codes, load_frames_npz, valid_targets
 from common.files import atomic_file
+from lam.data import infer_codes, load_frames_npz, valid_targets
+from lam.model import LAM
 
 logger = logging.getLogger("label_latent_actions")
 ACTION_NAME = "latent_action"
@@ -40,9 +41,8 @@ def parse_args(argv=None):
     p.add_argument("--token_dir", required=True,
                    help="token dataset directory (metadata.json, segment_ids.bin) to add actions/latent_action.bin to")
     p.add_argument("--batch_size", type=int, default=256, help="transitions per LAM batch")
-    p.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
-    p.add_argument("--num_threads", type=int, default=0,
-                   help="CPU threads for torch (0: torch's default); 1 can be much faster on a busy machine")
+    add_device_arg(p)
+    add_num_threads_arg(p)
     return p.parse_args(argv)
 
 
@@ -85,9 +85,8 @@ def fill_codes(segment_ids: np.ndarray, targets: np.ndarray, codes: np.ndarray,
 
 
 def label(args) -> dict:
-    if args.num_threads > 0:
-        torch.set_num_threads(args.num_threads)
-    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    apply_num_threads(args.num_threads)
+    device = resolve_device(args.device)
     model = LAM.from_pretrained(args.lam_dir, device=device).eval()
     cfg = model.config
     data = load_frames_npz(args.frames)
@@ -124,7 +123,7 @@ def label(args) -> dict:
 
 
 def main(argv=None):
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    setup_logging()
     args = parse_args(argv)
     sidecar = label(args)
     logger.info("wrote %s/actions/%s.bin: %s", args.token_dir, ACTION_NAME,

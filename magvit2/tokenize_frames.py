@@ -19,12 +19,12 @@ from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
-import torch
 from PIL import Image
 from tqdm import tqdm
 
-from data import TokenDatasetError, TokenDatasetWriter
+from common.cli import add_device_arg, resolve_device, setup_logging
 from common.config import ConfigError
+from data import TokenDatasetError, TokenDatasetWriter
 from magvit2.model import CheckpointError, VQModel
 
 logger = logging.getLogger(__name__)
@@ -282,8 +282,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--output_dir", required=True, help="token dataset directory to write")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --output_dir")
     parser.add_argument("--batch_size", type=int, default=32, help="frames encoded per forward pass")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
-                        help="torch device for the encoder (default: cuda when present, else cpu)")
+    add_device_arg(parser, help="torch device for the encoder: auto (cuda when available, else cpu), cpu, cuda or "
+                                "cuda:N")
     parser.add_argument("--hz", type=float, default=None,
                         help=f"frame rate written to metadata (default: the inputs' hz, else {DEFAULT_HZ})")
     parser.add_argument("--image_size", type=int, default=None,
@@ -305,7 +305,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging()
     args = parse_args(argv)
     try:
         episodes = describe_inputs(args.inputs)
@@ -313,7 +313,8 @@ def main(argv=None) -> None:
         if output_dir.exists() and not args.overwrite and (not output_dir.is_dir() or any(output_dir.iterdir())):
             raise FileExistsError(f"{output_dir} already exists; pass --overwrite to replace it")
         model = VQModel.from_checkpoint(args.tokenizer_ckpt, use_ema=not args.no_ema,
-                                        allow_unsafe_pickle=args.allow_unsafe_pickle, map_location=args.device)
+                                        allow_unsafe_pickle=args.allow_unsafe_pickle,
+                                        map_location=resolve_device(args.device))
         out = tokenize_episodes(model.eval(), episodes, output_dir, args.tokenizer_ckpt, hz=args.hz,
                                 image_size=args.image_size, batch_size=args.batch_size, overwrite=args.overwrite)
     except (TokenizeInputError, CheckpointError, TokenDatasetError, ConfigError, FileNotFoundError,

@@ -44,8 +44,9 @@ from safetensors.torch import load_file, save_file
 from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
-from common.errors import TrainingError
+from common.cli import add_device_arg, add_hidden_alias, resolve_device, setup_logging
 from common.config import ConfigError
+from common.errors import TrainingError
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, prune_checkpoints, read_json, remove_stale_temp_dirs,
                                resolve_resume_path, restore_rng_state, save_state_files, load_state_files)
@@ -347,9 +348,7 @@ def build_config(args) -> VQConfig:
 
 
 def make_accelerator(args) -> Accelerator:
-    use_cpu = args.device == "cpu" or (args.device == "auto" and not torch.cuda.is_available())
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise TrainingError("--device cuda was given but CUDA is not available")
+    use_cpu = resolve_device(args.device).type == "cpu"
     mixed_precision = args.mixed_precision if args.mixed_precision != "auto" else ("no" if use_cpu else "bf16")
     return Accelerator(cpu=use_cpu, mixed_precision=mixed_precision,
                        log_with=None if args.report_to == "none" else args.report_to, project_dir=args.output_dir)
@@ -441,7 +440,7 @@ class Trainer:
         model = VQModel(self.config)
         if args.channels_last:
             model = model.to(memory_format=torch.channels_last)
-        adam = dict(betas=(args.adam_beta1, args.adam_beta2), weight_decay=args.weight_decay,
+        adam = dict(betas=(args.adam_beta_1, args.adam_beta_2), weight_decay=args.weight_decay,
                     fused=acc.device.type == "cuda" or None)
         self.model, self.opt_g = acc.prepare(model, torch.optim.AdamW(model.parameters(), lr=args.learning_rate,
                                                                       **adam))
@@ -631,15 +630,16 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--learning_rate", type=float, default=1e-4, help="Tokenizer AdamW learning rate.")
     g.add_argument("--disc_learning_rate", type=float, default=None,
                    help="Discriminator AdamW learning rate (default: --learning_rate).")
-    g.add_argument("--adam_beta1", type=float, default=0.5, help="AdamW beta1 (0.5 as in GAN tokenizer training).")
-    g.add_argument("--adam_beta2", type=float, default=0.9, help="AdamW beta2.")
+    g.add_argument("--adam_beta_1", type=float, default=0.5, help="AdamW beta1 (0.5 as in GAN tokenizer training).")
+    g.add_argument("--adam_beta_2", type=float, default=0.9, help="AdamW beta2.")
+    add_hidden_alias(g, "--adam_beta1", "adam_beta_1", type=float)  # the spelling before train.py's was adopted
+    add_hidden_alias(g, "--adam_beta2", "adam_beta_2", type=float)
     g.add_argument("--weight_decay", type=float, default=0.0, help="AdamW weight decay.")
     g.add_argument("--max_grad_norm", type=float, default=1.0, help="Gradient clipping norm (<= 0: none).")
     g.add_argument("--max_train_steps", type=int, default=1000, help="Total optimizer steps.")
     g.add_argument("--ema_decay", type=float, default=0.999, help="Decay of the EMA weights that get exported.")
     g.add_argument("--seed", type=int, default=0, help="Seed of initialization, data order and augmentation.")
-    g.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
-                   help="auto: CUDA when available, else CPU.")
+    add_device_arg(g, choices=("auto", "cpu", "cuda"), help="auto: CUDA when available, else CPU.")
     g.add_argument("--mixed_precision", default="auto", choices=("auto", "no", "bf16"),
                    help="auto: bf16 autocast on CUDA, fp32 on CPU. bf16 on a CPU with AVX512-BF16/AMX is ~1.6x faster.")
     g.add_argument("--channels_last", action="store_true",
@@ -672,8 +672,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    logging.basicConfig(format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S",
-                        level=logging.INFO)
+    setup_logging()
     try:
         run(args)
     except (FrameDataError, ConfigError, LPIPSWeightsNotFound, TrainingStateError, TrainingError, CheckpointError,

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
+import evaluate
 import train
 import visualize
 from data import RawTokenDataset, read_metadata, write_token_dataset
 import genie.generate as generate_script
 from genie import GenieConfig, MaskGITBatch, STMaskGIT
-from genie import evaluate as genie_evaluate
 from genie.inference import generate, teacher_forced
 from genie.reference import generate_uncached, teacher_forced_uncached
 from lam.probe import button_combination_ids
@@ -321,14 +321,14 @@ def stub_scorer(monkeypatch):
         def lpips_distances(self, images_a, images_b):
             return (images_a.float() - images_b.float()).abs().mean(dim=(1, 2, 3)) / 255
 
-    monkeypatch.setattr(genie_evaluate, "FrameScorer", StubScorer)
+    monkeypatch.setattr(evaluate, "FrameScorer", StubScorer)
 
 
 def test_evaluate_adds_latent_action_metrics(action_data, latent_ckpt, tmp_path, capsys, stub_scorer):
     argv = ["--val_data_dir", str(action_data["val"]), "--train_data_dir", str(action_data["train"]),
             "--window_size", "4", "--stride", "1", "--batch_size", "4", "--device", "cpu", "--max_examples", "6",
             "--tokenizer_ckpt", "stub"]
-    assert genie_evaluate.main(argv + ["--checkpoint_dir", str(latent_ckpt)]) == 0
+    assert evaluate.main(argv + ["--checkpoint_dir", str(latent_ckpt)]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert {"delta_psnr", "action_probe_acc", "action_majority_rate"} <= set(result)
     assert result["delta_psnr"] != 0.0
@@ -340,7 +340,7 @@ def test_evaluate_adds_latent_action_metrics(action_data, latent_ckpt, tmp_path,
     with torch.no_grad():
         model.action_cond.latent_action_embed.weight.zero_()
     model.save_pretrained(tmp_path / "inert")
-    assert genie_evaluate.main(argv + ["--checkpoint_dir", str(tmp_path / "inert")]) == 0
+    assert evaluate.main(argv + ["--checkpoint_dir", str(tmp_path / "inert")]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["delta_psnr"] == 0.0
 
 
@@ -348,5 +348,5 @@ def test_evaluate_needs_the_checkpoints_action_streams(latent_ckpt, tmp_path, ca
     write_token_dataset(tmp_path / "plain", np.zeros((20, 4, 4), dtype=np.int64), metadata={"vocab_size": 4096})
     argv = ["--val_data_dir", str(tmp_path / "plain"), "--checkpoint_dir", str(latent_ckpt), "--window_size", "4",
             "--stride", "1", "--device", "cpu", "--skip_lpips"]
-    assert genie_evaluate.main(argv) == 1
+    assert evaluate.main(argv) == 1
     assert "latent_action.bin" in capsys.readouterr().err

@@ -12,11 +12,12 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
+from common.images import psnr
 from data import RawTokenDataset, read_metadata, write_token_dataset
+from evaluate import evaluate, main
 from genie import GenieConfig, STMaskGIT
-from genie.evaluate import evaluate, main
-from genie.evaluation import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
-                              token_accuracy)
+from genie.metrics import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
+                           token_accuracy)
 from genie.inference import teacher_forced
 
 REPO = Path(__file__).resolve().parents[1]
@@ -55,6 +56,19 @@ def test_token_accuracy_and_running_mean():
     mean.update(3.0, 2)
     mean.update(6.0, 1)
     assert mean.mean == 3.0
+
+
+def test_psnr_is_one_function_for_uint8_and_unit_range_frames():
+    a = torch.tensor([[[[0, 255, 128]]], [[[10, 20, 30]]]], dtype=torch.uint8)  # (2, 1, 1, 3)
+    b = torch.tensor([[[[0, 255, 128]]], [[[10, 20, 81]]]], dtype=torch.uint8)
+    db = psnr(a, b, (0.0, 255.0))
+    assert db[0].item() == pytest.approx(100.0)  # identical images: the 1e-10 floor
+    assert db[1].item() == pytest.approx(-10 * math.log10((51 / 255) ** 2 / 3), rel=1e-6)
+    as_unit = [x.float() / 127.5 - 1 for x in (a, b)]
+    torch.testing.assert_close(psnr(*as_unit, (-1.0, 1.0)), db, rtol=1e-5, atol=1e-4)
+    # predictions are clamped to the range, as a decoder's outputs may overshoot it
+    overshoot = as_unit[0] * 3
+    torch.testing.assert_close(psnr(overshoot, overshoot.clamp(-1, 1), (-1.0, 1.0)), torch.full((2,), 100.0))
 
 
 def test_images_to_unit_range():
@@ -188,7 +202,7 @@ def test_evaluate_script_runs_as_executable(tiny):
     ("grid", "tokens per frame"),
     ("vocab", "vocab_size 4096"),
     ("short_data", "needs 22 frames"),
-    ("window_vs_T", "longer than the checkpoint's T"),
+    ("window_vs_T", "longer than the model's T"),
     ("no_checkpoint", "not found"),
     ("no_tokenizer", "--skip_lpips"),
     ("world_size", "single process"),

@@ -9,7 +9,8 @@ import torch.nn.functional as F
 from lam import label as label_latent_actions, train as train_lam
 from lam.probe import action_probe, button_combination_ids, combination_name, transition_labels
 from common.config import ConfigError
-from lam.model import LAM, LAMConfig, VectorQuantizer, local_correlation, psnr
+from common.images import psnr
+from lam.model import LAM, LAMConfig, VectorQuantizer, local_correlation
 from lam.data import gather_transitions, valid_targets
 
 TINY = dict(image_size=16, channels=[8, 16], latent_dim=8, codebook_size=8, dead_code_steps=20)
@@ -151,8 +152,8 @@ def test_lam_recovers_hidden_discrete_action(trained_on_hidden_shifts):
     # A code that the probe maps to another action reconstructs the true next frame worse.
     mapping = probe["mapping"]
     wrong_ids = torch.tensor([next(c for c, label in mapping.items() if label != a) for a in val_action.tolist()])
-    psnr_right = psnr(model.decode_with_actions(val_past, val_ids), val_nxt).mean()
-    psnr_wrong = psnr(model.decode_with_actions(val_past, wrong_ids), val_nxt).mean()
+    psnr_right = psnr(model.decode_with_actions(val_past, val_ids), val_nxt, (-1.0, 1.0)).mean()
+    psnr_wrong = psnr(model.decode_with_actions(val_past, wrong_ids), val_nxt, (-1.0, 1.0)).mean()
     assert psnr_right > psnr_wrong + 2.0, (psnr_right, psnr_wrong)
 
 

@@ -20,8 +20,8 @@ def test_main_job_pipeline_tiny(tmp_path):
     tokenizer = tmp_path / "tokenizer"
     VQModel(VQConfig(base_channels=32, ch_mult=[1, 2, 2], num_res_blocks=1, resolution=64)).save_pretrained(tokenizer)
     sample = tmp_path / "sample"
-    build = [sys.executable, "-m", "data.build_sample", "--out_dir", str(sample), "--train_maps", "MAP01",
-             "--val_maps", "MAP18", "--train_episodes", "1", "--episode_len", "240", "--tokenizer", str(tokenizer)]
+    build = [sys.executable, "-m", "magvit2.build_sample", "--output_dir", str(sample), "--train_maps", "MAP01",
+             "--val_maps", "MAP18", "--train_episodes", "1", "--episode_len", "240", "--tokenizer_ckpt", str(tokenizer)]
     subprocess.run(build, cwd=REPO, check=True, timeout=300)
     train = RawTokenDataset(sample / "train", window_size=16, stride=15)
     assert len(train) > 0 and train.metadata["hz"] == 35

@@ -139,7 +139,7 @@ def test_train_and_val_are_disjoint():
 
 def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
     out = tmp_path / "raw"
-    argv = ["sample_world", "--out_dir", str(out), "--seed", "1", "--train_maps", "MAP01", "--val_maps", "MAP18",
+    argv = ["sample_world", "--output_dir", str(out), "--seed", "1", "--train_maps", "MAP01", "--val_maps", "MAP18",
             "--train_episodes", "1", "--val_episodes", "1", "--episode_len", "30", "--workers", "1"]
     monkeypatch.setattr(sys, "argv", argv)
     sw.main()

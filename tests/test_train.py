@@ -1,5 +1,6 @@
 """train.py on CPU with a tiny model: learning, checkpoints (round trip, in-process resume), data order, errors."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -7,6 +8,7 @@ import torch
 from safetensors.torch import load_file
 
 import train
+from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, write_token_dataset
 from genie import GenieConfig, STMaskGIT
 from genie.masking import get_maskgit_collator
@@ -180,13 +182,38 @@ def test_sampler_order_depends_only_on_seed_and_epoch_and_shards_disjointly():
 
 
 def test_lr_schedules():
-    linear = train.lr_multiplier("linear", warmup=2, total=10)
+    linear = lr_multiplier("linear", warmup=2, total=10)
     assert [linear(s) for s in (0, 1, 2, 6, 10)] == pytest.approx([0, 0.5, 1, 0.5, 0])
-    cosine = train.lr_multiplier("cosine", warmup=0, total=10)
+    cosine = lr_multiplier("cosine", warmup=0, total=10)
     assert cosine(0) == pytest.approx(1) and cosine(5) == pytest.approx(0.5) and cosine(10) == pytest.approx(0)
-    custom = train.lr_multiplier("custom_cosine", warmup=2, total=12)
+    custom = lr_multiplier("custom_cosine", warmup=2, total=12)
     assert custom(0) == pytest.approx(0.5) and custom(12) == pytest.approx(0.1)
-    assert train.lr_multiplier("constant", 5, 10)(0) == 1.0
+    assert lr_multiplier("constant", 5, 10)(0) == 1.0
+    assert set(LR_SCHEDULES) == set(train.LR_SCHEDULES)
+    with pytest.raises(ValueError, match="unknown learning-rate schedule"):
+        lr_multiplier("step", 0, 10)
+
+
+def test_lam_schedule_is_the_custom_cosine():
+    """lam/train.py's schedule, before it used common.schedules: warmup to 1, then cosine to 10 %."""
+    def lam_before(warmup_steps, total_steps):
+        def f(step):
+            if step < warmup_steps:
+                return (step + 1) / warmup_steps
+            progress = (step - warmup_steps) / max(1, total_steps - warmup_steps)
+            return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+        return f
+    for warmup, total in ((50, 1200), (0, 10), (3, 3)):
+        ours, before = lr_multiplier("custom_cosine", warmup, total), lam_before(warmup, total)
+        assert [ours(s) for s in range(total + 2)] == [before(s) for s in range(total + 2)]
+
+
+def test_help_hides_the_test_hooks(capsys):
+    with pytest.raises(SystemExit):
+        train.parse_args(["--help"])
+    assert "debug" not in capsys.readouterr().out.lower()
+    args = train.parse_args(["--debug_step_sleep", "0.5", "--debug_inject_nan_at_steps", "2", "3"])
+    assert args.debug_step_sleep == 0.5 and args.debug_inject_nan_at_steps == [2, 3]
 
 
 def test_checkpoint_layout_and_no_temp_leftovers(tiny_data, tmp_path):

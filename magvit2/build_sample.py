@@ -1,12 +1,13 @@
 """Build the embedded sample world: first-person frames + actions from ViZDoom, tokenized into the 1X layout.
 
-    python -m data.build_sample --out_dir data/sample
+    python -m magvit2.build_sample --output_dir data/sample
 
-1. `data.sample_world` renders train/val episodes (held-out episodes and maps for val) into out_dir/raw/*.npz;
+1. `data.sample_world` renders train/val episodes (held-out episodes and maps for val) into output_dir/raw/*.npz;
 2. the small MAGVIT2 tokenizer shipped in magvit2/pretrained/sample_world_64 (or one trained here with
    --train_tokenizer, using exactly the recipe that produced the shipped weights) encodes 64x64 frames to 16x16 tokens;
-3. the tokens, segment ids and actions are written to out_dir/train and out_dir/val (1X layout, with actions/).
+3. the tokens, segment ids and actions are written to output_dir/train and output_dir/val (1X layout, with actions/).
 Each step is skipped when its output already exists and matches, so a second run is cheap.
+The script lives in magvit2/ because it tokenizes: data/ renders the frames and never imports the tokenizer.
 """
 import argparse
 import hashlib
@@ -16,9 +17,10 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
+from common.cli import add_device_arg, add_hidden_alias, resolve_device
 from data.sample_world import HELDOUT_MAPS, TRAIN_MAPS, build_sample_world
+from magvit2.model import VQModel
+from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_TOKENIZER = "magvit2/pretrained/sample_world_64"
@@ -48,7 +50,7 @@ def resolve_tokenizer(path: str) -> Path:
         p = REPO_ROOT / p
     if not (p / "model.safetensors").exists():
         raise FileNotFoundError(f"tokenizer checkpoint {path} not found (expected config.json + model.safetensors); "
-                                f"train one with `python -m data.build_sample --train_tokenizer`")
+                                f"train one with `python -m magvit2.build_sample --train_tokenizer`")
     return p
 
 
@@ -60,11 +62,8 @@ def split_stamp(raw_npz: Path, tokenizer_dir: Path) -> dict:
 
 
 def tokenize_split(raw_npz: Path, out_dir: Path, tokenizer_dir: Path, tokenizer_ref: str, batch_size: int,
-                   device: str, overwrite: bool) -> None:
+                   device, overwrite: bool) -> None:
     """Encode one split's npz into a token dataset, unless an up-to-date one is already there."""
-    from magvit2 import VQModel
-    from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
-
     stamp = split_stamp(raw_npz, tokenizer_dir)
     stamp_path = out_dir / "build_stamp.json"
     if not overwrite and stamp_path.exists() and json.loads(stamp_path.read_text()) == stamp:
@@ -80,7 +79,8 @@ def tokenize_split(raw_npz: Path, out_dir: Path, tokenizer_dir: Path, tokenizer_
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out_dir", default="data/sample", help="root of the sample world (raw/, train/, val/)")
+    p.add_argument("--output_dir", default="data/sample", help="root of the sample world (raw/, train/, val/)")
+    add_hidden_alias(p, "--out_dir", "output_dir")  # the spelling before train.py's was adopted
     p.add_argument("--seed", type=int, default=0, help="seed of the episode generator")
     p.add_argument("--train_episodes", type=int, default=2,
                    help="episodes per training map (8 maps); validation gets 1 held-out episode per map + 1 held-out map")
@@ -88,20 +88,21 @@ def parse_args(argv=None):
     p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
                    help="maps of the held-out validation episodes (the last one is never trained on)")
     p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
-    p.add_argument("--tokenizer", default=SHIPPED_TOKENIZER,
+    p.add_argument("--tokenizer_ckpt", default=SHIPPED_TOKENIZER,
                    help="tokenizer checkpoint directory used to encode the frames (default: the shipped one)")
+    add_hidden_alias(p, "--tokenizer", "tokenizer_ckpt")
     p.add_argument("--train_tokenizer", action="store_true",
-                   help="train the tokenizer here with the shipped recipe (into OUT_DIR/tokenizer) instead of "
+                   help="train the tokenizer here with the shipped recipe (into OUTPUT_DIR/tokenizer) instead of "
                         "using the shipped weights")
     p.add_argument("--batch_size", type=int, default=256, help="frames per encoder batch when tokenizing")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
+    add_device_arg(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild every step even if outputs exist")
     return p.parse_args(argv)
 
 
 def main(argv=None):
     args = parse_args(argv)
-    out = Path(args.out_dir)
+    out = Path(args.output_dir)
     raw = out / "raw"
     build_sample_world(raw, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=1, episode_len=args.episode_len,
@@ -110,11 +111,11 @@ def main(argv=None):
         tokenizer_dir = train_tokenizer(raw, out / "tokenizer")
         tokenizer_ref = str(tokenizer_dir)
     else:
-        tokenizer_dir = resolve_tokenizer(args.tokenizer)
-        tokenizer_ref = args.tokenizer
+        tokenizer_dir = resolve_tokenizer(args.tokenizer_ckpt)
+        tokenizer_ref = args.tokenizer_ckpt
     for split in ("train", "val"):
         tokenize_split(raw / f"{split}.npz", out / split, tokenizer_dir, tokenizer_ref, args.batch_size,
-                       args.device, args.overwrite)
+                       resolve_device(args.device), args.overwrite)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,63 @@
+"""Command-line helpers shared by every script: the --device and --num_threads flags, and one logging set-up."""
+import argparse
+import logging
+
+import torch
+
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+LOG_DATE_FORMAT = "%H:%M:%S"
+
+
+def setup_logging(level: int = logging.INFO) -> None:
+    """The one log format of all scripts (stderr, so that stdout stays free for results such as JSON lines)."""
+    logging.basicConfig(format=LOG_FORMAT, datefmt=LOG_DATE_FORMAT, level=level)
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> cuda when available, else cpu; any other torch device name must exist on this machine."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ValueError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r}: CUDA is not available on this machine (use --device cpu or auto)")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device {name!r}: MPS is not available on this machine (use --device cpu or auto)")
+    return device
+
+
+def _device_name(name: str) -> str:
+    """argparse type of --device: checked at parse time (a clear usage error), kept as the name the user gave."""
+    try:
+        resolve_device(name)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return name
+
+
+def add_device_arg(parser, help: str = "torch device: auto (cuda when available, else cpu), cpu, cuda or cuda:N",
+                   **kwargs) -> None:
+    """--device, default 'auto'; scripts turn it into a torch.device with resolve_device(args.device)."""
+    parser.add_argument("--device", type=_device_name, default="auto", help=help, **kwargs)
+
+
+def add_num_threads_arg(parser) -> None:
+    parser.add_argument("--num_threads", type=int, default=0,
+                        help="CPU threads for torch (0: torch's default); 1 gives steadier, often faster runs of "
+                             "small models on a busy shared machine")
+
+
+def apply_num_threads(num_threads: int) -> None:
+    if num_threads > 0:
+        torch.set_num_threads(num_threads)
+
+
+def add_hidden_alias(parser, option: str, dest: str, **kwargs) -> None:
+    """An earlier spelling of an option (e.g. --adam_beta1 for --adam_beta_1): it keeps working but --help shows
+    only the current one. Add it after the current option, whose default it leaves alone."""
+    parser.add_argument(option, dest=dest, default=argparse.SUPPRESS, help=argparse.SUPPRESS, **kwargs)

@@ -1,0 +1,52 @@
+"""The package layering: common <- data <- magvit2 <- genie, lam <- scripts; nothing imports a higher layer."""
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ALLOWED = {"common": {"common"}, "data": {"common", "data"}, "magvit2": {"common", "data", "magvit2"},
+           "genie": {"common", "data", "magvit2", "genie"}, "lam": {"common", "data", "magvit2", "lam"}}
+
+
+def imported_packages(path: Path) -> set:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names & set(ALLOWED)
+
+
+@pytest.mark.parametrize("package", sorted(ALLOWED))
+def test_no_package_imports_a_higher_layer(package):
+    for path in sorted((REPO / package).rglob("*.py")):
+        higher = imported_packages(path) - ALLOWED[package]
+        assert not higher, f"{path.relative_to(REPO)} imports {sorted(higher)}"
+
+
+SCRIPTS = ["train.py", "evaluate.py", "visualize.py", "genie/generate.py", "genie/baselines.py", "magvit2/train.py",
+           "magvit2/tokenize_frames.py", "magvit2/lpips_weights.py", "magvit2/build_sample.py", "data/sample_world.py",
+           "lam/train.py", "lam/label.py"]
+
+
+def test_every_script_answers_help():
+    """--help parses every entry point's flags without running anything (one interpreter, to stay quick)."""
+    code = ("import runpy, sys\n"
+            "for script in sys.argv[1:]:\n"
+            "    sys.argv = [script, '--help']\n"
+            "    try:\n"
+            "        runpy.run_path(script, run_name='__main__')\n"
+            "    except SystemExit as e:\n"
+            "        assert e.code == 0, (script, e.code)\n"
+            "    else:\n"
+            "        raise AssertionError(f'{script} --help did not exit')\n")
+    proc = subprocess.run([sys.executable, "-c", code, *SCRIPTS], cwd=REPO, capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.count("usage:") == len(SCRIPTS)
+    assert "debug" not in proc.stdout.lower()
