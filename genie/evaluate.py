@@ -40,6 +40,7 @@ from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from lam.probe import action_probe, transition_labels
 from genie.actions import LATENT_ACTION_NAME, action_columns, latent_action_sidecar, split_actions
 from common.config import ConfigError
+from common.errors import WriteError
 from lam.data import valid_targets
 from genie.evaluation import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
@@ -361,7 +362,7 @@ def main(argv=None) -> int:
     try:
         result = run(args)
     except (EvaluationError, TokenDatasetError, ConfigError, CheckpointError, FileNotFoundError,
-            NotADirectoryError) as e:
+            NotADirectoryError, WriteError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
         return 1
     print(json.dumps(result))

@@ -24,6 +24,7 @@ from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
 from torch import nn
 
 from common.errors import CheckpointError
+from common.integrity import update_manifest, verify_manifest
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, load_json
 from genie.evaluation import factored_argmax_correct, factored_cross_entropy
@@ -462,9 +463,11 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         try:
             self.config.save(tmp / CONFIG_NAME)
             self._save_pretrained(tmp)
+            update_manifest(tmp, (CONFIG_NAME, WEIGHTS_NAME))
             if target.exists():
                 for name in (WEIGHTS_NAME, CONFIG_NAME):
                     os.replace(tmp / name, target / name)
+                update_manifest(target, (CONFIG_NAME, WEIGHTS_NAME))
             else:
                 os.replace(tmp, target)
         finally:
@@ -492,6 +495,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         checkpoint_dir = resolve_checkpoint_dir(pretrained_model_name_or_path, revision=revision,
                                                 cache_dir=cache_dir, force_download=force_download,
                                                 local_files_only=local_files_only, token=token)
+        verify_manifest(checkpoint_dir, (CONFIG_NAME, WEIGHTS_NAME))  # refuses silently corrupted files
         config_path = checkpoint_dir / CONFIG_NAME
         config = GenieConfig.from_dict(load_json(config_path, "GENIE config"), source=str(config_path))
         model = cls(config)

@@ -26,7 +26,9 @@ import torch
 from common.config import load_json
 from lam.model import LAM
 from lam.data import infer_codes, load_frames_npz, valid_targets
+from common.errors import WriteError
 from common.files import atomic_file
+from common.integrity import read_manifest, update_manifest
 
 logger = logging.getLogger("label_latent_actions")
 ACTION_NAME = "latent_action"
@@ -105,7 +107,7 @@ def label(args) -> dict:
     actions_dir = token_dir / "actions"
     actions_dir.mkdir(exist_ok=True)
     array_N1 = per_frame.astype(np.float32).reshape(-1, 1)
-    atomic_file(actions_dir / f"{ACTION_NAME}.bin", lambda tmp: array_N1.tofile(tmp))
+    atomic_file(actions_dir / f"{ACTION_NAME}.bin", lambda tmp: tmp.write_bytes(array_N1.tobytes()), "the latent action labels")
     sidecar = {
         "latent_action_stride": cfg.stride,
         "latent_action_codebook_size": cfg.codebook_size,
@@ -119,14 +121,19 @@ def label(args) -> dict:
         "frames": str(args.frames),
     }
     text = json.dumps(sidecar, indent=2) + "\n"
-    atomic_file(actions_dir / f"{ACTION_NAME}.json", lambda tmp: tmp.write_text(text))
+    atomic_file(actions_dir / f"{ACTION_NAME}.json", lambda tmp: tmp.write_text(text), "the latent action sidecar")
+    if read_manifest(token_dir) is not None:  # keep a dataset with recorded digests fully verifiable
+        update_manifest(token_dir, [f"actions/{ACTION_NAME}.bin", f"actions/{ACTION_NAME}.json"])
     return sidecar
 
 
 def main(argv=None):
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     args = parse_args(argv)
-    sidecar = label(args)
+    try:
+        sidecar = label(args)
+    except WriteError as e:  # full disk / I/O error: one line instead of a traceback
+        raise SystemExit(f"error: {e}") from None
     logger.info("wrote %s/actions/%s.bin: %s", args.token_dir, ACTION_NAME,
                 {k: v for k, v in sidecar.items() if k.startswith("num")})
 

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from data import TokenDatasetError, TokenDatasetWriter
 from common.config import ConfigError
+from common.errors import WriteError
 from magvit2.model import CheckpointError, VQModel
 
 logger = logging.getLogger(__name__)
@@ -317,7 +318,7 @@ def main(argv=None) -> None:
         out = tokenize_episodes(model.eval(), episodes, output_dir, args.tokenizer_ckpt, hz=args.hz,
                                 image_size=args.image_size, batch_size=args.batch_size, overwrite=args.overwrite)
     except (TokenizeInputError, CheckpointError, TokenDatasetError, ConfigError, FileNotFoundError,
-            FileExistsError) as e:  # each names the file at fault
+            FileExistsError, WriteError) as e:  # each names the file at fault
         raise SystemExit(f"error: {e}") from None
     logger.info("wrote %d frames to %s", sum(e.num_frames for e in episodes), out)
 
