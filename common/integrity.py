@@ -97,12 +97,13 @@ def check_file(directory, name: str, entry: dict, progress=None):
 
 def verify_manifest(directory, names=None, progress=None) -> list:
     """Check the files `names` (None: all recorded) of `directory` against its manifest; raise IntegrityError
-    naming the first file that differs. Names the manifest does not record are skipped; without a manifest
-    nothing is checked. Returns the names checked."""
+    naming the first file that differs. Names the manifest does not record are skipped, and so are absent files
+    (the loader's own "not found" error names them better); without a manifest nothing is checked.
+    Returns the names checked."""
     files = read_manifest(directory)
     if files is None:
         return []
-    checked = [n for n in (files if names is None else names) if n in files]
+    checked = [n for n in (files if names is None else names) if n in files and (Path(directory) / n).exists()]
     for name in checked:
         problem = check_file(directory, name, files[name], progress)
         if problem is not None:

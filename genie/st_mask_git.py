@@ -495,7 +495,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         checkpoint_dir = resolve_checkpoint_dir(pretrained_model_name_or_path, revision=revision,
                                                 cache_dir=cache_dir, force_download=force_download,
                                                 local_files_only=local_files_only, token=token)
-        verify_manifest(checkpoint_dir, (CONFIG_NAME, WEIGHTS_NAME))  # refuses silently corrupted files
+        verify_manifest(checkpoint_dir, [WEIGHTS_NAME])  # refuses silently corrupted weights
         config_path = checkpoint_dir / CONFIG_NAME
         config = GenieConfig.from_dict(load_json(config_path, "GENIE config"), source=str(config_path))
         model = cls(config)

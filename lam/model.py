@@ -475,7 +475,7 @@ class LAM(nn.Module):
         load_dir = Path(load_dir)
         if not load_dir.is_dir():
             raise FileNotFoundError(f"LAM checkpoint directory not found: {load_dir}")
-        verify_manifest(load_dir, (CONFIG_NAME, WEIGHTS_NAME))  # IntegrityError (a ValueError) naming a corrupt file
+        verify_manifest(load_dir, [WEIGHTS_NAME])  # IntegrityError (a ValueError) naming corrupt weights
         config = LAMConfig.from_dict(load_json(load_dir / CONFIG_NAME, "LAM config"), str(load_dir / CONFIG_NAME))
         weights_path = load_dir / WEIGHTS_NAME
         if not weights_path.is_file():

@@ -221,7 +221,7 @@ def _load_directory(path: Path) -> Tuple[Dict[str, torch.Tensor], VQConfig]:
     if missing:
         raise FileNotFoundError(f"tokenizer directory {path} lacks {', '.join(missing)} (expected {CONFIG_NAME} + "
                                 f"{WEIGHTS_NAME}, as written by VQModel.save_pretrained)")
-    verify_manifest(path, (CONFIG_NAME, WEIGHTS_NAME))  # IntegrityError (a CheckpointError) naming a corrupt file
+    verify_manifest(path, [WEIGHTS_NAME])  # IntegrityError (a CheckpointError) naming corrupt weights
     return _load_safetensors(path / WEIGHTS_NAME), VQConfig.from_pretrained(path / CONFIG_NAME)
 
 
