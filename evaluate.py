@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from common.cli import add_device_arg, resolve_device, setup_logging
 from common.config import ConfigError
-from common.errors import CheckpointError, DataMismatchError
+from common.errors import CheckpointError, DataMismatchError, WriteError
 from common.images import psnr
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.actions import LATENT_ACTION_NAME, check_action_streams, latent_action_sidecar, window_actions
@@ -348,7 +348,7 @@ def main(argv=None) -> int:
     try:
         result = run(args)
     except (EvaluationError, DataMismatchError, TokenDatasetError, ConfigError, CheckpointError, FileNotFoundError,
-            NotADirectoryError) as e:
+            NotADirectoryError, WriteError) as e:
         print(f"evaluate.py: error: {e}", file=sys.stderr)
         return 1
     print(json.dumps(result))

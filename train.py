@@ -13,9 +13,10 @@
 The model owns its loss (model(batch, recipe).loss, genie/objectives.py); this script owns the loop.
 
 Crash safety: every `--checkpointing_steps` optimizer steps the full training state is written atomically to
-`output_dir/checkpoint-<step>/` (see common/train_state.py). The data order depends only on the seed and the epoch,
-and the collator's masking only on the seed and the position in the data, so a run resumed from a checkpoint takes
-exactly the steps the uninterrupted run would have taken. SIGTERM saves a checkpoint and exits cleanly.
+`output_dir/checkpoint-<step>/` (see common/train_state.py); older ones are pruned only after it is complete, and a
+full disk ends the run with one line naming the last complete checkpoint. The data order depends only on the seed and
+the epoch, and the collator's masking only on the seed and the position in the data, so a run resumed from a
+checkpoint takes exactly the steps the uninterrupted run would have taken. SIGTERM saves a checkpoint and exits cleanly.
 A step whose loss or gradient is NaN/inf is skipped; `--max_nonfinite_steps` of them in a row stop the run after
 saving a checkpoint of the last good weights (the data position is past the bad batches).
 """
@@ -41,7 +42,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
 from common.cli import setup_logging
-from common.errors import CheckpointError, DataMismatchError, TrainingError
+from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
 from genie.masking import get_maskgit_collator
@@ -52,7 +53,7 @@ from genie.masking import MaskGITBatch
 from genie.model import STMaskGIT
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, load_training_checkpoint, prune_checkpoints, remove_stale_temp_dirs,
-                               resolve_resume_path, restore_rng_state, save_training_checkpoint)
+                               resolve_resume_path, restore_rng_state, resume_hint, save_training_checkpoint)
 
 logger = logging.getLogger("train")
 
@@ -505,7 +506,7 @@ class Trainer:
     def save_final(self) -> None:
         if self.accelerator.is_main_process:
             path = Path(self.args.output_dir) / "final_checkpt"
-            with atomic_directory(path) as tmp:
+            with atomic_directory(path, "the final model") as tmp:
                 self.model.save_pretrained(tmp, recipe=self.recipe)
             logger.info("saved the final model to %s", path)
         self.accelerator.wait_for_everyone()
@@ -568,6 +569,9 @@ def main(argv=None) -> None:
     args = parse_args(argv)
     try:
         run(args)
+    except WriteError as e:  # full disk / I/O error: say what failed and where the run can resume from
+        logger.error("%s", e)
+        sys.exit(f"train.py: error: {e}; {resume_hint(args.output_dir)}")
     except (TrainingError, TrainingStateError, CheckpointError, ConfigError, DataMismatchError, TokenDatasetError,
             OSError) as e:
         logger.error("%s", e)

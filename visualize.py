@@ -15,7 +15,6 @@ token dir's actions/NAME.bin, e.g. the latent actions written by lam.label), or 
 import argparse
 import json
 import logging
-import os
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence, Union
 
@@ -25,6 +24,8 @@ from PIL import Image, ImageDraw, ImageFont
 
 from common.cli import add_device_arg, resolve_device, setup_logging
 from common.config import ConfigError
+from common.errors import WriteError
+from common.files import atomic_file
 from data import RawTokenDataset, TokenDatasetError
 from magvit2 import CheckpointError, VQModel
 
@@ -185,18 +186,14 @@ def grid_image(rows: Sequence[Sequence[Image.Image]]) -> Image.Image:
 
 
 def save_gif(frames: Sequence[Image.Image], path: Path, fps: float) -> None:
-    """Write an animated GIF atomically (temp file + rename)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        frames[0].save(tmp, format="GIF", save_all=True, append_images=list(frames[1:]),
-                       duration=round(1000 / fps), loop=0)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    """Write an animated GIF atomically (temp file + rename); a full disk raises WriteError."""
+    atomic_file(path, lambda tmp: frames[0].save(tmp, format="GIF", save_all=True, append_images=list(frames[1:]),
+                                                 duration=round(1000 / fps), loop=0), "the GIF")
 
 
 def save_comic(panels: Sequence[Sequence[tuple]], path: Path) -> None:
-    """panels: rows of (pixels_HWC, title, label or None). Written atomically as a PNG with matplotlib."""
+    """panels: rows of (pixels_HWC, title, label or None). Written atomically as a PNG with matplotlib; a full
+    disk raises WriteError."""
     nrows, ncols = len(panels), max(len(r) for r in panels)
     fig = Figure(figsize=(2.2 * ncols, 2.4 * nrows))
     axs = fig.subplots(nrows, ncols, squeeze=False)
@@ -209,12 +206,7 @@ def save_comic(panels: Sequence[Sequence[tuple]], path: Path) -> None:
             ax.set_title(title, fontsize=9)
             if label is not None:
                 ax.text(0.5, -0.04, label, transform=ax.transAxes, ha="center", va="top", fontsize=7)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_file(path, lambda tmp: fig.savefig(tmp, format="png", bbox_inches="tight"), "the comic")
 
 
 def _label(labels: Optional[FrameLabels], index: int) -> Optional[str]:
@@ -305,7 +297,7 @@ def main(argv=None) -> None:
                             args.token_dir)
             written = visualize_frames(model, tokens, out_dir, args.offset, args.stride, args.max_images, args.fps,
                                        labels, args.batch_size)
-    except (TokenDatasetError, CheckpointError, ConfigError, FileNotFoundError, ValueError) as e:
+    except (TokenDatasetError, CheckpointError, ConfigError, FileNotFoundError, ValueError, WriteError) as e:
         raise SystemExit(f"error: {e}") from None
     for path in written:
         print(f"Saved to {path}")

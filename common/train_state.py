@@ -5,6 +5,7 @@ A training checkpoint `checkpoint-<step>/` holds:
     optimizer.safetensors/.json      optimizer tensors + the rest of its state_dict (see `flatten_state`)
     rng.safetensors/.json            RNG states of every process (torch, CUDA, numpy, python)
     trainer_state.json               step, epoch, position in the epoch, lr scheduler state, run arguments
+    MANIFEST.json                    size + sha256 of every file above, checked on resume (common/integrity.py)
     COMPLETE                         written last; a directory without it is never resumed from
 Everything is written into a hidden temporary directory that is renamed into place once complete, so a kill at any
 moment leaves either the previous set of checkpoints or the new one, never a half-written directory that looks valid.
@@ -25,6 +26,7 @@ from safetensors.torch import load_file, save_file
 
 from common.files import (COMPLETE_MARKER, TMP_PREFIX, atomic_directory, atomic_file, is_complete,
                           remove_stale_temp_dirs)
+from common.integrity import verify_manifest
 
 CHECKPOINT_PREFIX = "checkpoint-"
 FORMAT_VERSION = 1
@@ -229,6 +231,14 @@ def resolve_resume_path(output_dir, resume_from):
     return path
 
 
+def resume_hint(output_dir) -> str:
+    """One line for a run that stopped on a write error: the newest complete checkpoint and how to resume."""
+    found = list_checkpoints(output_dir)
+    if not found:
+        return f"no complete checkpoint in {output_dir} yet"
+    return f"last complete checkpoint: {found[-1][1]} (resume with --resume_from_checkpoint latest)"
+
+
 def prune_checkpoints(output_dir, keep: int) -> None:
     """Delete the oldest complete checkpoints so that at most `keep` remain (keep <= 0: keep all)."""
     if keep <= 0:
@@ -244,7 +254,7 @@ def save_training_checkpoint(ckpt_dir, model, optimizer, trainer_state: dict, rn
     """Atomically write a full training checkpoint. `model` must have `save_pretrained(dir, **model_kwargs)`;
     `trainer_state` is JSON-serializable (step, epoch, scheduler state, ...); `rng_states` holds one
     `capture_rng_state()` per process."""
-    with atomic_directory(ckpt_dir) as tmp:
+    with atomic_directory(ckpt_dir, "the training checkpoint") as tmp:
         model.save_pretrained(tmp, **(model_kwargs or {}))
         save_state_files(tmp, "optimizer", optimizer.state_dict())
         save_state_files(tmp, "rng", rng_states)
@@ -261,6 +271,7 @@ def load_training_checkpoint(ckpt_dir) -> dict:
     ckpt_dir = Path(ckpt_dir)
     if not is_complete(ckpt_dir):
         raise TrainingStateError(f"{ckpt_dir}: incomplete checkpoint (no {COMPLETE_MARKER} file)")
+    verify_manifest(ckpt_dir)  # IntegrityError naming the file when a byte changed since it was written
     trainer = read_json(ckpt_dir / "trainer_state.json", "trainer state")
     if trainer.get("format_version") != FORMAT_VERSION:
         raise TrainingStateError(f"{ckpt_dir / 'trainer_state.json'}: format_version "

@@ -6,6 +6,9 @@ A dataset directory holds
     video.bin            token ids, token_dtype, shape (N, s, s)
     segment_ids.bin      int32 (N,), non-decreasing; a window may not cross two segments (clips)
     actions/<name>.bin   float32 (N, k) per action stream (optional)
+    MANIFEST.json        size + sha256 of each file, recorded by the writer (common/integrity.py); opening a dataset
+                         does not read it (video.bin can be GBs): `validate(full=True)` and `python -m data.verify`
+                         check it. Datasets without one (published ones) are read as before.
 
 Every problem with a directory is reported as a TokenDatasetError naming the offending file.
 """
@@ -18,6 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch.utils.data import Dataset
+
+from common.errors import IntegrityError, writing
+from common.integrity import update_manifest, verify_manifest
 
 REQUIRED_KEYS = ("num_images", "s", "vocab_size", "hz")
 TOKEN_DTYPES = ("uint8", "uint16", "uint32", "uint64", "int16", "int32", "int64")
@@ -313,10 +319,12 @@ class RawTokenDataset(Dataset):
         actions = {name: torch.from_numpy(values) for name, values in self.get_window_actions(start_ind).items()}
         return {"tokens": torch.from_numpy(tokens_Tss.astype(np.int64)), "actions": actions}
 
-    def validate(self, full: bool = True) -> None:
+    def validate(self, full: bool = True, progress=None) -> None:
         """Check token ids (< vocab_size) and action values (finite); raise on the first problem.
 
-        full: scan every frame in chunks (minutes on 10 M frames); otherwise only the first and last window.
+        full: also check every file against the digests of MANIFEST.json (when there is one; at the disk's read
+        speed, progress(n_bytes) after each chunk) and scan every frame in chunks (minutes on 10 M frames);
+        otherwise only the first and last window.
         """
         if not full:
             for idx in (0, len(self) - 1):
@@ -330,6 +338,10 @@ class RawTokenDataset(Dataset):
             _check_token_range(np.asarray(self.data[a:a + rows]), self.vocab_size, self.data_dir / "video.bin", a)
         for name in self.action_names:
             _check_finite(self.actions[name], self._action_path(name))
+        try:  # after the scans, whose errors say which frame is bad; the digests catch what they cannot see
+            verify_manifest(self.data_dir, progress=progress)
+        except IntegrityError as e:
+            raise TokenDatasetError(str(e)) from None
 
 
 class TokenDatasetWriter:
@@ -340,8 +352,9 @@ class TokenDatasetWriter:
                 writer.append(video_nss, segment_ids_n, {"driving_command": actions_n2})
 
     metadata is merged over the defaults (vocab_size 262144, hz 30, token_dtype uint32); num_images, s, h, w are
-    derived. An exception inside the block leaves no dataset (and an existing one untouched). An existing dataset
-    is replaced (atomically swapped) only with overwrite=True.
+    derived. An exception inside the block leaves no dataset (and an existing one untouched); a full disk raises
+    WriteError naming out_dir. An existing dataset is replaced (atomically swapped) only with overwrite=True.
+    The digests of all files are recorded in MANIFEST.json when the dataset is completed.
     """
 
     def __init__(self, out_dir, s: int, metadata=None, overwrite: bool = False):
@@ -371,10 +384,12 @@ class TokenDatasetWriter:
 
     def __enter__(self) -> "TokenDatasetWriter":
         self._check_target()
-        self.out_dir.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp_dir = Path(tempfile.mkdtemp(prefix=f".{self.out_dir.name}.", suffix=".tmp", dir=self.out_dir.parent))
-        self._files["video"] = open(self._tmp_dir / "video.bin", "wb")
-        self._files["segment_ids"] = open(self._tmp_dir / "segment_ids.bin", "wb")
+        with writing("the token dataset", self.out_dir):
+            self.out_dir.parent.mkdir(parents=True, exist_ok=True)
+            self._tmp_dir = Path(tempfile.mkdtemp(prefix=f".{self.out_dir.name}.", suffix=".tmp",
+                                                  dir=self.out_dir.parent))
+            self._files["video"] = open(self._tmp_dir / "video.bin", "wb")
+            self._files["segment_ids"] = open(self._tmp_dir / "segment_ids.bin", "wb")
         return self
 
     def _error(self, problem: str) -> TokenDatasetError:
@@ -446,16 +461,17 @@ class TokenDatasetWriter:
         n = len(video)
         segment_ids = self._checked_segment_ids(segment_ids_chunk, n)
         actions = self._checked_actions(actions_chunk, n)
-        if self._action_dims is None:
-            self._action_dims = {name: v.shape[1] for name, v in actions.items()}
-            if actions:
-                (self._tmp_dir / "actions").mkdir()
-            for name in actions:
-                self._files[f"actions/{name}"] = open(self._tmp_dir / "actions" / f"{name}.bin", "wb")
-        video.tofile(self._files["video"])
-        segment_ids.tofile(self._files["segment_ids"])
-        for name, values in actions.items():
-            values.tofile(self._files[f"actions/{name}"])
+        with writing("the token dataset", self.out_dir):
+            if self._action_dims is None:
+                self._action_dims = {name: v.shape[1] for name, v in actions.items()}
+                if actions:
+                    (self._tmp_dir / "actions").mkdir()
+                for name in actions:
+                    self._files[f"actions/{name}"] = open(self._tmp_dir / "actions" / f"{name}.bin", "wb")
+            _write_array(self._files["video"], video)
+            _write_array(self._files["segment_ids"], segment_ids)
+            for name, values in actions.items():
+                _write_array(self._files[f"actions/{name}"], values)
         self.num_images += n
         if n:
             self._last_segment_id = int(segment_ids[-1])
@@ -470,6 +486,7 @@ class TokenDatasetWriter:
             raise TokenDatasetError(f"{self.out_dir}: no frames were written; a dataset needs at least one")
         self.metadata["num_images"] = self.num_images
         (self._tmp_dir / "metadata.json").write_text(json.dumps(self.metadata, indent=2) + "\n")
+        update_manifest(self._tmp_dir)
         self._check_target()
         if not self.out_dir.exists() or not any(self.out_dir.iterdir()):
             os.replace(self._tmp_dir, self.out_dir)
@@ -486,15 +503,22 @@ class TokenDatasetWriter:
             shutil.rmtree(old_dir, ignore_errors=True)
 
     def __exit__(self, exc_type, exc, tb) -> bool:
-        self._close_files()
         try:
-            if exc_type is None:
-                self._finish()
+            with writing("the token dataset", self.out_dir):
+                self._close_files()  # flushes the last buffered chunk: a full disk can show up here
+                if exc_type is None:
+                    self._finish()
         finally:
             if self._tmp_dir.exists():
                 shutil.rmtree(self._tmp_dir, ignore_errors=True)
             self._tmp_dir = None
         return False
+
+
+def _write_array(f, array: np.ndarray) -> None:
+    """Append the array's bytes to an open file. Not ndarray.tofile: on a full disk it raises a bare "n requested
+    and m written" OSError without errno, which cannot be told apart from other errors."""
+    f.write(np.ascontiguousarray(array).data)
 
 
 def write_token_dataset(out_dir, video, segment_ids=None, actions=None, metadata=None,

@@ -11,6 +11,7 @@ from huggingface_hub import hf_hub_download
 
 from common.config import load_json
 from common.errors import CheckpointError
+from common.integrity import update_manifest, verify_manifest
 from genie.config import GenieConfig, TrainingRecipe, save_config
 
 CONFIG_NAME = "config.json"
@@ -18,8 +19,8 @@ WEIGHTS_NAME = "model.safetensors"
 
 
 def save_model(model, save_directory: Union[str, Path], recipe: Optional[TrainingRecipe] = None) -> None:
-    """Write config.json (+ the recipe's fields, as the published file has its training knobs) and
-    model.safetensors.
+    """Write config.json (+ the recipe's fields, as the published file has its training knobs),
+    model.safetensors and their digests (MANIFEST.json, common/integrity.py).
 
     A new directory is written under a temporary name and renamed; in an existing directory each file is replaced
     atomically and other files are kept.
@@ -33,9 +34,11 @@ def save_model(model, save_directory: Union[str, Path], recipe: Optional[Trainin
         save_config(tmp / CONFIG_NAME, model.config, recipe)
         state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
         safetensors.torch.save_file(state, str(tmp / WEIGHTS_NAME), metadata={"format": "pt"})
+        update_manifest(tmp, (CONFIG_NAME, WEIGHTS_NAME))
         if target.exists():
             for name in (WEIGHTS_NAME, CONFIG_NAME):
                 os.replace(tmp / name, target / name)
+            update_manifest(target, (CONFIG_NAME, WEIGHTS_NAME))
         else:
             os.replace(tmp, target)
     finally:
@@ -51,6 +54,7 @@ def load_config(checkpoint_dir: Path) -> GenieConfig:
 def load_weights(model, checkpoint_dir: Path, map_location: str = "cpu") -> None:
     """Load model.safetensors into `model`; the weights must match its config key for key."""
     weights_path = Path(checkpoint_dir) / WEIGHTS_NAME
+    verify_manifest(checkpoint_dir, [WEIGHTS_NAME])  # refuses silently corrupted weights (no manifest: published)
     try:
         state_dict = safetensors.torch.load_file(str(weights_path), device=str(map_location))
     except Exception as e:  # safetensors raises its own error types for truncated / non-safetensors files

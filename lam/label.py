@@ -25,7 +25,9 @@ import torch
 
 from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
 from common.config import load_json
+from common.errors import WriteError
 from common.files import atomic_file
+from common.integrity import read_manifest, update_manifest
 from lam.data import infer_codes, load_frames_npz, valid_targets
 from lam.model import LAM
 
@@ -104,7 +106,7 @@ def label(args) -> dict:
     actions_dir = token_dir / "actions"
     actions_dir.mkdir(exist_ok=True)
     array_N1 = per_frame.astype(np.float32).reshape(-1, 1)
-    atomic_file(actions_dir / f"{ACTION_NAME}.bin", lambda tmp: array_N1.tofile(tmp))
+    atomic_file(actions_dir / f"{ACTION_NAME}.bin", lambda tmp: tmp.write_bytes(array_N1.tobytes()), "the latent action labels")
     sidecar = {
         "latent_action_stride": cfg.stride,
         "latent_action_codebook_size": cfg.codebook_size,
@@ -118,14 +120,19 @@ def label(args) -> dict:
         "frames": str(args.frames),
     }
     text = json.dumps(sidecar, indent=2) + "\n"
-    atomic_file(actions_dir / f"{ACTION_NAME}.json", lambda tmp: tmp.write_text(text))
+    atomic_file(actions_dir / f"{ACTION_NAME}.json", lambda tmp: tmp.write_text(text), "the latent action sidecar")
+    if read_manifest(token_dir) is not None:  # keep a dataset with recorded digests fully verifiable
+        update_manifest(token_dir, [f"actions/{ACTION_NAME}.bin", f"actions/{ACTION_NAME}.json"])
     return sidecar
 
 
 def main(argv=None):
     setup_logging()
     args = parse_args(argv)
-    sidecar = label(args)
+    try:
+        sidecar = label(args)
+    except WriteError as e:  # full disk / I/O error: one line instead of a traceback
+        raise SystemExit(f"error: {e}") from None
     logger.info("wrote %s/actions/%s.bin: %s", args.token_dir, ACTION_NAME,
                 {k: v for k, v in sidecar.items() if k.startswith("num")})
 

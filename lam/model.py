@@ -32,6 +32,7 @@ from safetensors.torch import load_file, save_file
 
 from common.config import ConfigError, dataclass_from_dict, load_json
 from common.files import atomic_file
+from common.integrity import update_manifest, verify_manifest
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
@@ -457,13 +458,16 @@ class LAM(nn.Module):
         return self.decoder(past_BPCHW, action_BD.to(past_BPCHW.dtype))
 
     def save_pretrained(self, save_dir) -> None:
-        """Write config.json + model.safetensors into save_dir, each atomically (temp file, then rename)."""
+        """Write config.json + model.safetensors into save_dir, each atomically (temp file, then rename), and their
+        digests into MANIFEST.json. A full disk raises WriteError and leaves the previous files in place."""
         save_dir = Path(save_dir)
         save_dir.mkdir(parents=True, exist_ok=True)
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
-        atomic_file(save_dir / WEIGHTS_NAME, lambda tmp: save_file(state, str(tmp), metadata={"format": "pt"}))
+        atomic_file(save_dir / WEIGHTS_NAME, lambda tmp: save_file(state, str(tmp), metadata={"format": "pt"}),
+                    "the LAM weights")
         text = json.dumps(self.config.to_dict(), indent=2, sort_keys=True) + "\n"
-        atomic_file(save_dir / CONFIG_NAME, lambda tmp: tmp.write_text(text))
+        atomic_file(save_dir / CONFIG_NAME, lambda tmp: tmp.write_text(text), "the LAM config")
+        update_manifest(save_dir, (WEIGHTS_NAME, CONFIG_NAME))
 
     @classmethod
     def from_pretrained(cls, load_dir, device="cpu") -> "LAM":
@@ -471,6 +475,7 @@ class LAM(nn.Module):
         load_dir = Path(load_dir)
         if not load_dir.is_dir():
             raise FileNotFoundError(f"LAM checkpoint directory not found: {load_dir}")
+        verify_manifest(load_dir, [WEIGHTS_NAME])  # IntegrityError (a ValueError) naming corrupt weights
         config = LAMConfig.from_dict(load_json(load_dir / CONFIG_NAME, "LAM config"), str(load_dir / CONFIG_NAME))
         weights_path = load_dir / WEIGHTS_NAME
         if not weights_path.is_file():

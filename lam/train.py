@@ -17,7 +17,6 @@ import argparse
 import json
 import logging
 import math
-import os
 import time
 from pathlib import Path
 
@@ -27,6 +26,8 @@ from tqdm import tqdm
 
 from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
 from common.config import load_json
+from common.errors import WriteError
+from common.files import write_json_atomic
 from common.images import psnr
 from common.schedules import lr_multiplier
 from lam.data import gather_transitions, infer_codes, load_frames_npz, valid_targets
@@ -132,12 +133,6 @@ def probe_metrics(model: LAM, train: dict, train_frames: torch.Tensor, train_tar
             "action_label": "most frequent button combination over the transition's raw tics"}
 
 
-def save_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=2) + "\n")
-    os.replace(tmp, path)
-
-
 def train(args) -> dict:
     apply_num_threads(args.num_threads)
     device = resolve_device(args.device)
@@ -201,13 +196,16 @@ def train(args) -> dict:
                                      device))
     else:
         logger.warning("no 'actions_buttons' in the data: skipping the action probe")
-    save_json_atomic(output_dir / "metrics.json", metrics)
+    write_json_atomic(output_dir / "metrics.json", metrics, "the LAM metrics")
     return metrics
 
 
 def main(argv=None):
     setup_logging()
-    metrics = train(parse_args(argv))
+    try:
+        metrics = train(parse_args(argv))
+    except WriteError as e:  # full disk / I/O error: one line instead of a traceback
+        raise SystemExit(f"error: {e}") from None
     print(json.dumps(metrics))
 
 

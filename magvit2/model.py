@@ -1,7 +1,8 @@
 """VQModel: the MAGVIT2 tokenizer (encoder, LFQ, decoder), image <-> token conversion and checkpoint loading.
 
 Checkpoints it reads:
-- our directory layout: `config.json` (VQConfig) + `model.safetensors` (written by `save_pretrained`);
+- our directory layout: `config.json` (VQConfig) + `model.safetensors` (written by `save_pretrained`, with a
+  MANIFEST.json of their digests that loading verifies);
 - a `.safetensors` file holding `encoder.*` / `decoder.*` weights;
 - a published Open-MAGVIT2 / PyTorch Lightning `.ckpt` (e.g. the 1X `magvit2.ckpt`, FORMATS.md 4): a torch pickle whose
   `state_dict` holds `encoder.*`, `decoder.*`, `loss.*` (ignored) and EMA copies `model_ema.<name without dots>`.
@@ -25,9 +26,10 @@ from einops import rearrange
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from common.errors import CheckpointError
 from common.config import ConfigError
+from common.errors import CheckpointError, writing
 from common.files import atomic_file
+from common.integrity import update_manifest, verify_manifest
 from magvit2.config import VQConfig
 from magvit2.lfq import LFQ, LFQOutput, ids_to_latents, latents_to_ids
 from magvit2.modules import Decoder, Encoder
@@ -131,21 +133,25 @@ class VQModel(nn.Module):
         is replaced atomically (other files there, e.g. training state, are kept).
         """
         save_directory = Path(save_directory)
-        save_directory.parent.mkdir(parents=True, exist_ok=True)
         state_dict = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
         if save_directory.exists():
-            atomic_file(save_directory / CONFIG_NAME, lambda p: self.config.save(p))
-            atomic_file(save_directory / WEIGHTS_NAME, lambda p: save_file(state_dict, p, {"format": "pt"}))
+            atomic_file(save_directory / CONFIG_NAME, lambda p: self.config.save(p), "the tokenizer config")
+            atomic_file(save_directory / WEIGHTS_NAME, lambda p: save_file(state_dict, p, {"format": "pt"}),
+                        "the tokenizer weights")
+            update_manifest(save_directory, (CONFIG_NAME, WEIGHTS_NAME))
             return
-        tmp_dir = Path(tempfile.mkdtemp(prefix=f".{save_directory.name}.", dir=save_directory.parent))
-        os.chmod(tmp_dir, 0o755)  # mkdtemp makes it private; the checkpoint is an ordinary directory
-        try:
-            self.config.save(tmp_dir / CONFIG_NAME)
-            save_file(state_dict, tmp_dir / WEIGHTS_NAME, {"format": "pt"})
-            os.replace(tmp_dir, save_directory)
-        except BaseException:
-            shutil.rmtree(tmp_dir, ignore_errors=True)
-            raise
+        with writing("the tokenizer checkpoint", save_directory):
+            save_directory.parent.mkdir(parents=True, exist_ok=True)
+            tmp_dir = Path(tempfile.mkdtemp(prefix=f".{save_directory.name}.", dir=save_directory.parent))
+            os.chmod(tmp_dir, 0o755)  # mkdtemp makes it private; the checkpoint is an ordinary directory
+            try:
+                self.config.save(tmp_dir / CONFIG_NAME)
+                save_file(state_dict, tmp_dir / WEIGHTS_NAME, {"format": "pt"})
+                update_manifest(tmp_dir)
+                os.replace(tmp_dir, save_directory)
+            except BaseException:
+                shutil.rmtree(tmp_dir, ignore_errors=True)
+                raise
 
     @classmethod
     def from_checkpoint(cls, path, config: Optional[VQConfig] = None, use_ema: bool = True,
@@ -215,6 +221,7 @@ def _load_directory(path: Path) -> Tuple[Dict[str, torch.Tensor], VQConfig]:
     if missing:
         raise FileNotFoundError(f"tokenizer directory {path} lacks {', '.join(missing)} (expected {CONFIG_NAME} + "
                                 f"{WEIGHTS_NAME}, as written by VQModel.save_pretrained)")
+    verify_manifest(path, [WEIGHTS_NAME])  # IntegrityError (a CheckpointError) naming corrupt weights
     return _load_safetensors(path / WEIGHTS_NAME), VQConfig.from_pretrained(path / CONFIG_NAME)
 
 

@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from common.cli import add_device_arg, resolve_device, setup_logging
 from common.config import ConfigError
+from common.errors import WriteError
 from data import TokenDatasetError, TokenDatasetWriter
 from magvit2.model import CheckpointError, VQModel
 
@@ -318,7 +319,7 @@ def main(argv=None) -> None:
         out = tokenize_episodes(model.eval(), episodes, output_dir, args.tokenizer_ckpt, hz=args.hz,
                                 image_size=args.image_size, batch_size=args.batch_size, overwrite=args.overwrite)
     except (TokenizeInputError, CheckpointError, TokenDatasetError, ConfigError, FileNotFoundError,
-            FileExistsError) as e:  # each names the file at fault
+            FileExistsError, WriteError) as e:  # each names the file at fault
         raise SystemExit(f"error: {e}") from None
     logger.info("wrote %d frames to %s", sum(e.num_frames for e in episodes), out)
 

@@ -27,7 +27,6 @@ import glob
 import json
 import logging
 import math
-import os
 import struct
 import sys
 import time
@@ -45,11 +44,14 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
 from common.cli import add_device_arg, add_hidden_alias, resolve_device, setup_logging
+from common.errors import TrainingError, WriteError, writing
+from common.files import write_json_atomic
+from common.integrity import verify_manifest
 from common.config import ConfigError
-from common.errors import TrainingError
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, prune_checkpoints, read_json, remove_stale_temp_dirs,
-                               resolve_resume_path, restore_rng_state, save_state_files, load_state_files)
+                               resolve_resume_path, restore_rng_state, resume_hint, save_state_files,
+                               load_state_files)
 from magvit2.config import VQConfig
 from magvit2.lpips import LPIPS, MIN_SIDE as LPIPS_MIN_SIDE, LPIPSWeightsNotFound
 from magvit2.losses import GAN_LOSSES, GAN_WEIGHTINGS, VQLoss
@@ -276,7 +278,7 @@ def evaluate(model: VQModel, dataset: Dataset, perceptual: Optional[LPIPS], args
 def save_checkpoint(ckpt_dir: Path, step: int, model: VQModel, ema: EMA, loss_fn: VQLoss, opt_g, opt_d,
                     rng_states: list, args) -> None:
     """Write a resumable training checkpoint atomically (a temp directory renamed into place)."""
-    with atomic_directory(ckpt_dir) as tmp:
+    with atomic_directory(ckpt_dir, "the tokenizer training checkpoint") as tmp:
         ema.model.save_pretrained(tmp)  # the directory doubles as a tokenizer checkpoint (EMA weights)
         save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
                   str(tmp / "raw_model.safetensors"))
@@ -292,12 +294,6 @@ def save_checkpoint(ckpt_dir: Path, step: int, model: VQModel, ema: EMA, loss_fn
         (tmp / "trainer_state.json").write_text(json.dumps(trainer_state, indent=2, sort_keys=True) + "\n")
 
 
-def write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
-
-
 def _read_weights(path: Path) -> Dict[str, torch.Tensor]:
     if not path.is_file():
         raise TrainingStateError(f"{path.parent}: missing {path.name}")
@@ -310,6 +306,7 @@ def _read_weights(path: Path) -> Dict[str, torch.Tensor]:
 def load_checkpoint(ckpt_dir: Path, model: VQModel, ema: EMA, loss_fn: VQLoss, opt_g, opt_d,
                     config: VQConfig) -> Tuple[int, list]:
     """Restore a checkpoint written by `save_checkpoint`; returns (step, per-process RNG states)."""
+    verify_manifest(ckpt_dir)  # IntegrityError naming a file whose bytes changed since it was written
     trainer = read_json(ckpt_dir / "trainer_state.json", "trainer state")
     if trainer.get("format_version") != FORMAT_VERSION:
         raise TrainingStateError(f"{ckpt_dir / 'trainer_state.json'}: format_version "
@@ -385,7 +382,7 @@ class RunLog:
     def write(self, step: int, metrics: Dict[str, float]) -> None:
         self.accelerator.log(metrics, step=step)
         if self.enabled:
-            with open(self.path, "a") as f:
+            with writing("the training log", self.path), open(self.path, "a") as f:
                 f.write(json.dumps({"step": step, **metrics}) + "\n")
 
 
@@ -565,10 +562,12 @@ class Trainer:
         if losses:
             results.update(first_loss=losses[0], final_loss=losses[-1])
         if self.is_main:
-            self.ema.model.save_pretrained(self.output_dir / "final_checkpt")
+            with writing("the final tokenizer", self.output_dir / "final_checkpt"):
+                self.ema.model.save_pretrained(self.output_dir / "final_checkpt")
             if self.val_ds is not None:
                 results.update(self.evaluate(step))
-            write_json_atomic(self.output_dir / "eval_results.json", results)
+            write_json_atomic(self.output_dir / "eval_results.json", {k: results[k] for k in sorted(results)},
+                              "the evaluation results")
             logger.info("%d steps in %.1fs (%.3g steps/s); EMA tokenizer written to %s", steps_done, elapsed,
                         results["train_steps_per_second"], self.output_dir / "final_checkpt")
         self.accelerator.end_training()
@@ -675,6 +674,8 @@ def main(argv=None) -> None:
     setup_logging()
     try:
         run(args)
+    except WriteError as e:  # full disk / I/O error: say what failed and where the run can resume from
+        sys.exit(f"error: {e}; {resume_hint(args.output_dir)}")
     except (FrameDataError, ConfigError, LPIPSWeightsNotFound, TrainingStateError, TrainingError, CheckpointError,
             FileNotFoundError) as e:
         sys.exit(f"error: {e}")

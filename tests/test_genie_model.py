@@ -395,7 +395,8 @@ def test_checkpoint_round_trip(tmp_path):
     model = STMaskGIT(config)
     model.init_weights()
     model.save_pretrained(tmp_path / "ckpt")
-    assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == ["config.json", "model.safetensors"]
+    assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == ["MANIFEST.json", "config.json",
+                                                                     "model.safetensors"]
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt"]  # no temporary directory left behind
     assert json.loads((tmp_path / "ckpt" / "config.json").read_text()) == config.to_dict()
     loaded = STMaskGIT.from_pretrained(str(tmp_path / "ckpt"))

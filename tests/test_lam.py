@@ -168,7 +168,8 @@ def test_different_latent_actions_give_different_frames(trained_on_hidden_shifts
 def test_save_load_round_trip(tmp_path, trained_on_hidden_shifts):
     model, gen = trained_on_hidden_shifts
     model.save_pretrained(tmp_path / "lam")
-    assert sorted(p.name for p in (tmp_path / "lam").iterdir()) == ["config.json", "model.safetensors"]
+    assert sorted(p.name for p in (tmp_path / "lam").iterdir()) == ["MANIFEST.json", "config.json",
+                                                                    "model.safetensors"]
     loaded = LAM.from_pretrained(tmp_path / "lam").eval()
     assert loaded.config == model.config
     past, nxt, _ = shifted_pairs(gen, 8)

@@ -245,7 +245,7 @@ def test_save_pretrained_round_trip(tmp_path):
     model = randomize(VQModel(tiny_config(entropy_weight=0.3)), 4).eval()
     out = tmp_path / "tok"
     model.save_pretrained(out)
-    assert sorted(p.name for p in out.iterdir()) == ["config.json", "model.safetensors"]
+    assert sorted(p.name for p in out.iterdir()) == ["MANIFEST.json", "config.json", "model.safetensors"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tok"]  # no temp dirs left behind
     loaded = VQModel.from_checkpoint(out).eval()
     assert loaded.config == model.config

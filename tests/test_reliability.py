@@ -183,7 +183,7 @@ def test_atomic_directory_never_leaves_a_partial_directory(tmp_path):
         (tmp / "a").write_text("old")
     with atomic_directory(target) as tmp:
         (tmp / "b").write_text("new")
-    assert sorted(p.name for p in target.iterdir()) == [COMPLETE_MARKER, "b"]
+    assert sorted(p.name for p in target.iterdir()) == [COMPLETE_MARKER, "MANIFEST.json", "b"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint-1"]
 
     (tmp_path / ".tmp-checkpoint-2.123").mkdir()
