@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The 1X challenge evaluator (FORMATS.md 5): temporally teacher-forced CE, token accuracy, LPIPS, s/frame.
+"""The 1X challenge evaluator (docs/formats.md §5): temporally teacher-forced CE, token accuracy, LPIPS, s/frame.
 
     ./evaluate.py --val_data_dir data/val_v1.1 --checkpoint_dir 1x-technologies/GENIE_35M
 
@@ -284,7 +284,7 @@ def latent_action_probe(val_ds: RawTokenDataset, train_data_dir, stride: int) ->
 
 
 def save_outputs(out_dir: str, windows: list, dataset, window_size: int) -> None:
-    """Write evaluated windows in the generated layout (FORMATS.md 1), one segment id per window."""
+    """Write evaluated windows in the generated layout (docs/formats.md §1), one segment id per window."""
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
         meta_path = out / "metadata.json"

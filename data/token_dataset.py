@@ -1,4 +1,4 @@
-"""Memory-mapped token dataset in the 1X layout (FORMATS.md 1): reader, validation, window index, writer.
+"""Memory-mapped token dataset in the 1X layout (docs/formats.md §1): reader, validation, window index, writer.
 
 A dataset directory holds
 

@@ -1,6 +1,6 @@
 """Multi-head self-attention with the published GENIE parameter layout, on F.scaled_dot_product_attention.
 
-Parameters (FORMATS.md 3): `qkv` (3d, d) whose output splits as (3, heads, head_dim), `proj` (d, d) and, with
+Parameters (docs/formats.md §3): `qkv` (3d, d) whose output splits as (3, heads, head_dim), `proj` (d, d) and, with
 qk_norm, one LayerNorm `norm` over head_dim applied to both q and k. The published weights were trained with
 xformers' memory-efficient attention: q and k are normalized first and the softmax scale is applied afterwards
 inside the attention kernel, which is what `scale=` of scaled_dot_product_attention does here. (The published

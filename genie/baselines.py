@@ -1,4 +1,4 @@
-"""Copy-the-last-frame baselines for the challenge metrics (FORMATS.md 5).
+"""Copy-the-last-frame baselines for the challenge metrics (docs/formats.md §5).
 
     python -m genie.baselines --train_data_dir data/sample/train --val_data_dir data/sample/val
 

@@ -1,4 +1,4 @@
-"""Token id <-> factor conversion (FORMATS.md 2): factor k = (t // V^k) % V, t = sum_k f_k * V^k."""
+"""Token id <-> factor conversion (docs/formats.md §2): factor k = (t // V^k) % V, t = sum_k f_k * V^k."""
 import torch
 
 

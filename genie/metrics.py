@@ -1,4 +1,4 @@
-"""Challenge metrics on tensors (FORMATS.md 5), shared by STMaskGIT's loss, evaluate.py and the benchmark."""
+"""Challenge metrics on tensors (docs/formats.md §5), shared by STMaskGIT's loss, evaluate.py and the benchmark."""
 from dataclasses import dataclass
 from typing import Optional
 

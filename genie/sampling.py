@@ -1,4 +1,4 @@
-"""MaskGIT decoding of one frame of tokens with factored logits (FORMATS.md 5), batched over frames.
+"""MaskGIT decoding of one frame of tokens with factored logits (docs/formats.md §5), batched over frames.
 
 Differences from the published sampler, on purpose: the temperature divides the logits (the published code
 divides the probabilities, which Categorical renormalizes, so its temperature had no effect), and tokens given in

@@ -10,7 +10,7 @@ from common.config import ConfigError, dataclass_from_dict, load_json
 
 @dataclass
 class VQConfig:
-    """Encoder/decoder shape (FORMATS.md 4) and the training loss weights.
+    """Encoder/decoder shape (docs/formats.md §4) and the training loss weights.
 
     256x256 RGB in [-1, 1] <-> 16x16 latents of `z_channels` channels, each quantized to +-1 (LFQ), so a token id
     has `z_channels` bits and `codebook_size` = 2 ** z_channels.

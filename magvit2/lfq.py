@@ -1,6 +1,6 @@
 """Lookup-free quantization (MAGVIT2): each latent channel is quantized to -1 or +1, one bit of the token id.
 
-Bit order (FORMATS.md 2): channel c is +1 exactly when bit c of the token id is set, t = sum_c [z_c > 0] * 2^c.
+Bit order (docs/formats.md §2): channel c is +1 exactly when bit c of the token id is set, t = sum_c [z_c > 0] * 2^c.
 
 Entropy loss, as Open-MAGVIT2 defines it: for a latent z (C channels) the code distribution is
 p(k) = softmax_k(2 <z, code_k> / T) over the 2^C codes (code_k in {-1, +1}^C; the same as softmax(-||z - code_k||^2 / T)

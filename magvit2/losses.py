@@ -1,6 +1,6 @@
 """Tokenizer training losses: L1 + LPIPS + PatchGAN (hinge or non-saturating, adaptive weight, LeCAM) + LFQ terms.
 
-The recipe of the published MAGVIT2 tokenizers (FORMATS.md 4). `VQLoss` owns the discriminator and the LeCAM
+The recipe of the published MAGVIT2 tokenizers (docs/formats.md §4). `VQLoss` owns the discriminator and the LeCAM
 statistics; the trainer calls `generator_loss` for the autoencoder update and `discriminator_loss` for the
 discriminator update of the same batch.
 """

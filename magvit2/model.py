@@ -4,7 +4,7 @@ Checkpoints it reads:
 - our directory layout: `config.json` (VQConfig) + `model.safetensors` (written by `save_pretrained`, with a
   MANIFEST.json of their digests that loading verifies);
 - a `.safetensors` file holding `encoder.*` / `decoder.*` weights;
-- a published Open-MAGVIT2 / PyTorch Lightning `.ckpt` (e.g. the 1X `magvit2.ckpt`, FORMATS.md 4): a torch pickle whose
+- a published Open-MAGVIT2 / PyTorch Lightning `.ckpt` (e.g. the 1X `magvit2.ckpt`, docs/formats.md §4): a torch pickle whose
   `state_dict` holds `encoder.*`, `decoder.*`, `loss.*` (ignored) and EMA copies `model_ema.<name without dots>`.
   It is read with `torch.load(weights_only=True)`; a pickle that needs arbitrary code is refused unless the caller
   explicitly passes `allow_unsafe_pickle=True` (CLI flag `--allow_unsafe_pickle`).

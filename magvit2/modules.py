@@ -1,4 +1,4 @@
-"""MAGVIT2 (Open-MAGVIT2) convolutional encoder and decoder with the published parameter names (FORMATS.md 4).
+"""MAGVIT2 (Open-MAGVIT2) convolutional encoder and decoder with the published parameter names (docs/formats.md §4).
 
 Encoder: conv_in -> per level i: down.i.block.j ResBlocks, down.i.downsample (stride-2 conv, not on the last level)
 -> mid_block -> norm_out -> swish -> conv_out (1x1 to z_channels).

@@ -1,4 +1,4 @@
-"""Frames (+ per-frame actions and segment ids) -> a token dataset in the 1X layout (FORMATS.md 1).
+"""Frames (+ per-frame actions and segment ids) -> a token dataset in the 1X layout (docs/formats.md §1).
 
 Inputs, in the order given:
 - an .npz with `frames` (N, H, W, 3) uint8, optional `segment_ids` (N,) int (non-decreasing), optional action arrays

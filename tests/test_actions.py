@@ -65,7 +65,7 @@ def perturbed(actions, latent, start: int, seed: int):
 
 # ------------------------------------------------------------------ config and parameter layout
 def published_keys(num_layers: int) -> set:
-    """FORMATS.md 3's parameter names (qk_norm false)."""
+    """docs/formats.md §3's parameter names (qk_norm false)."""
     keys = {"pos_embed_TSC", "token_embed.mask_token_embed", "token_embed.factored_embeds.0.weight",
             "token_embed.factored_embeds.1.weight", "out_x_proj.weight", "out_x_proj.bias"}
     for i in range(num_layers):

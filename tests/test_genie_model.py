@@ -26,7 +26,7 @@ def tiny_config(**overrides) -> GenieConfig:
 
 
 def published_state_dict(config: GenieConfig, seed: int = 0) -> dict:
-    """Random weights under the FORMATS.md 3 parameter names, written out by hand (not from the model)."""
+    """Random weights under the docs/formats.md §3 parameter names, written out by hand (not from the model)."""
     g = torch.Generator().manual_seed(seed)
     d, V, F_ = config.d_model, config.factored_vocab_size, config.num_factored_vocabs
     hidden, hd = int(d * config.mlp_ratio), d // config.num_heads

@@ -18,10 +18,11 @@ from common.errors import IntegrityError, WriteError
 from common.files import write_json_atomic
 from common.integrity import MANIFEST_NAME, read_manifest, verify_manifest
 from common.train_state import list_checkpoints, load_training_checkpoint, save_training_checkpoint
-from data import RawTokenDataset, TokenDatasetError, TokenDatasetWriter, write_token_dataset
+from data import RawTokenDataset, TokenDatasetError, TokenDatasetWriter
 from data import verify as data_verify
 from genie.config import GenieConfig
-from genie.st_mask_git import STMaskGIT
+from genie.masking import MaskGITBatch
+from genie.model import STMaskGIT
 from lam.model import LAM, LAMConfig
 from magvit2 import VQModel
 from tests.test_lam import TINY as TINY_LAM
@@ -78,7 +79,8 @@ def test_saving_over_an_existing_model_keeps_its_manifest_valid(tmp_path):
 def test_flipped_byte_in_training_checkpoint_is_refused_on_resume(tmp_path):
     model = tiny_genie()
     optimizer = torch.optim.AdamW(model.parameters())
-    model(torch.randint(0, 4096, (1, 64)), labels=torch.randint(0, 4096, (1, 64))).loss.backward()
+    x = torch.randint(0, 4096, (1, 4, 4, 4))
+    model(MaskGITBatch(x.masked_fill(torch.rand(x.shape) < 0.5, 4096), x)).loss.backward()
     optimizer.step()
     ckpt = tmp_path / "checkpoint-1"
     save_training_checkpoint(ckpt, model, optimizer, {"step": 1}, [{"seed": 0}])

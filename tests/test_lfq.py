@@ -13,7 +13,7 @@ def test_ids_bits_round_trip():
     bits = ids_to_bits(ids, 18)
     assert bits.shape == (4, 16, 16, 18) and bits.dtype == torch.bool
     assert torch.equal(bits_to_ids(bits), ids)
-    # bit c is (t >> c) & 1, channel 0 the least significant bit (FORMATS.md 2)
+    # bit c is (t >> c) & 1, channel 0 the least significant bit (docs/formats.md §2)
     for c in (0, 5, 17):
         assert torch.equal(bits[..., c], (ids // 2 ** c) % 2 == 1)
 

@@ -59,7 +59,7 @@ def test_config_rejects_bad_values():
 
 def test_published_parameter_counts_and_names():
     model = VQModel()
-    # FORMATS.md 4: encoder 25.0 M, decoder 40.5 M parameters
+    # docs/formats.md §4: encoder 25.0 M, decoder 40.5 M parameters
     assert round(sum(p.numel() for p in model.encoder.parameters()) / 1e6, 1) == 25.0
     assert round(sum(p.numel() for p in model.decoder.parameters()) / 1e6, 1) == 40.5
     sd = model.state_dict()
