@@ -13,6 +13,7 @@ from typing import Optional
 import torch
 from einops import rearrange
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 from genie.attention import SelfAttention
 from genie.config import GenieConfig
@@ -100,13 +101,21 @@ class STTransformer(nn.Module):
     def __init__(self, config: GenieConfig) -> None:
         super().__init__()
         self.layers = nn.ModuleList([STBlock(config) for _ in range(config.num_layers)])
+        # activation checkpointing (train.py --gradient_checkpointing): keep only each block's input and recompute
+        # the block in the backward pass, for larger batches in the same memory
+        self.gradient_checkpointing = False
 
     def forward(self, x_BTSC: torch.Tensor, mode: TemporalMode = TemporalMode.CAUSAL,
                 kv_cache: Optional[TemporalKVCache] = None) -> Optional[torch.Tensor]:
         """x (B, T, S, C) -> (B, T, S, C), or None in PREFILL mode (only the cache is filled)."""
         if (kv_cache is None) != (mode is TemporalMode.CAUSAL):
             raise ValueError(f"temporal mode {mode.name} {'needs' if kv_cache is None else 'takes no'} KV cache")
+        # only whole windows: the cached modes write keys/values in place, which a recomputation would repeat
+        recompute = self.gradient_checkpointing and mode is TemporalMode.CAUSAL and torch.is_grad_enabled()
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
-            x_BTSC = layer(x_BTSC, mode, kv_cache, i, kv_only=mode is TemporalMode.PREFILL and i == last)
+            if recompute:
+                x_BTSC = checkpoint(layer, x_BTSC, use_reentrant=False)
+            else:
+                x_BTSC = layer(x_BTSC, mode, kv_cache, i, kv_only=mode is TemporalMode.PREFILL and i == last)
         return x_BTSC

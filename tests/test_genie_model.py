@@ -283,6 +283,29 @@ def test_two_stream_loss_equals_one_full_pass_per_target(uses_actions):
         torch.testing.assert_close(grads[name], p.grad, atol=1e-6, rtol=1e-5)
 
 
+def test_gradient_checkpointing_gives_the_same_loss_and_gradients_with_less_saved():
+    config = tiny_config(mlp_drop=0.1)  # dropout: the recomputation must replay the same random mask
+    model = sharp_readout_model(config).train()
+    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    inputs = labels.masked_fill(torch.rand(labels.shape, generator=torch.Generator().manual_seed(2)) < 0.5,
+                                config.mask_token_id)
+    results = []
+    for recompute in (False, True):
+        model.decoder.gradient_checkpointing = recompute
+        model.zero_grad()
+        saved = []
+        torch.manual_seed(0)
+        with torch.autograd.graph.saved_tensors_hooks(lambda t: saved.append(t.numel()) or t, lambda t: t):
+            out = model(MaskGITBatch(inputs, labels))
+        out.loss.backward()
+        results.append((out.loss.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}, sum(saved)))
+    (loss, grads, saved_plain), (loss_cp, grads_cp, saved_cp) = results
+    torch.testing.assert_close(loss_cp, loss)
+    for name in grads:
+        torch.testing.assert_close(grads_cp[name], grads[name], atol=1e-6, rtol=1e-5)
+    assert saved_cp < saved_plain / 2  # only block inputs are kept for the backward pass
+
+
 def test_two_stream_rejects_masked_context_and_mismatched_targets():
     config = tiny_config()
     model = STMaskGIT(config)

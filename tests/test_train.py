@@ -87,6 +87,17 @@ def test_training_lowers_the_loss(tiny_data, tmp_path):
     assert not list_checkpoints(tmp_path)  # --checkpointing_steps 0 writes only final_checkpt
 
 
+def test_gradient_checkpointing_trains_the_same_weights(tiny_data, tmp_path):
+    """--gradient_checkpointing recomputes activations in the backward pass: the same run, the same weights."""
+    steps = ("--max_train_steps", "3", "--checkpointing_steps", "0")
+    train.main(train_argv(tiny_data, tmp_path / "plain", *steps))
+    train.main(train_argv(tiny_data, tmp_path / "recomputed", *steps, "--gradient_checkpointing"))
+    plain, recomputed = (load_weights(tmp_path / run / "final_checkpt") for run in ("plain", "recomputed"))
+    assert plain.keys() == recomputed.keys()
+    for k in plain:
+        torch.testing.assert_close(recomputed[k], plain[k], atol=1e-6, rtol=1e-5)
+
+
 def test_two_stream_training_lowers_the_teacher_forced_loss(tiny_data, tmp_path):
     data = dict(tiny_data, config=write_config(tmp_path / "two_stream.json", two_stream_ratio=1.0,
                                                two_stream_partial_ratio=0.3))
