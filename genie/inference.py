@@ -61,14 +61,22 @@ def context_cache(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor])
     return kv_cache
 
 
-def check_generation(model, prompt_BTHW: torch.Tensor, num_new_frames: int) -> None:
-    T0 = prompt_BTHW.shape[1]
+def generation_inputs(model, prompt_BTHW: torch.Tensor, num_new_frames: int, actions: Optional[torch.Tensor],
+                      latent_actions: Optional[torch.Tensor], control: bool):
+    """Checked inputs of a generation: (action embeddings (B, T0 + n, C) or None, the window's tokens
+    (B, T0 + n, H, W) with the new frames masked). Without `control` only the prompt's action rows are known."""
+    B, T0 = prompt_BTHW.shape[:2]
     if T0 < 1 or num_new_frames < 1:
         raise ValueError(f"need at least one prompt frame and one new frame, got {T0} and {num_new_frames}")
-    if T0 + num_new_frames > model.config.T:
-        raise ValueError(f"cannot generate up to frame {T0 + num_new_frames - 1}: the model has position embeddings "
-                         f"for T = {model.config.T} frames (prompt {T0} + {num_new_frames} new > {model.config.T})")
+    total = T0 + num_new_frames
+    if total > model.config.T:
+        raise ValueError(f"cannot generate up to frame {total - 1}: the model has position embeddings for "
+                         f"T = {model.config.T} frames (prompt {T0} + {num_new_frames} new > {model.config.T})")
     model.check_tokens(prompt_BTHW)
+    cond_BTC = model.action_embeds(B, total, actions, latent_actions, total if control else T0)
+    tokens_BTHW = torch.cat([prompt_BTHW, torch.full_like(prompt_BTHW[:, :1], model.mask_token_id)
+                             .expand(-1, num_new_frames, -1, -1)], dim=1)
+    return cond_BTC, tokens_BTHW
 
 
 @torch.no_grad()
@@ -86,12 +94,8 @@ def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_step
     Returns (tokens (B, T0 + n, H, W): prompt then generated frames,
              first-step factored logits of the generated frames (B, V, F, n, H, W)).
     """
-    check_generation(model, prompt_BTHW, num_new_frames)
-    B, T0 = prompt_BTHW.shape[:2]
-    total = T0 + num_new_frames
-    cond_BTC = model.action_embeds(B, total, actions, latent_actions, total if control else T0)
-    tokens_BTHW = torch.cat([prompt_BTHW, torch.full_like(prompt_BTHW[:, :1], model.mask_token_id)
-                             .expand(-1, num_new_frames, -1, -1)], dim=1)
+    cond_BTC, tokens_BTHW = generation_inputs(model, prompt_BTHW, num_new_frames, actions, latent_actions, control)
+    T0, total = prompt_BTHW.shape[1], tokens_BTHW.shape[1]
     kv_cache = TemporalKVCache(model.config.num_layers, total)
     run_frames(model, prompt_BTHW, 0, kv_cache, TemporalMode.PREFILL, commit=T0, cond_BTC=_frames(cond_BTC, 0, T0))
     all_logits = []

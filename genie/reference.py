@@ -10,7 +10,7 @@ import torch
 from einops import rearrange
 
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
-from genie.inference import check_generation, check_teacher_forced, sample_targets
+from genie.inference import check_teacher_forced, generation_inputs, sample_targets
 from genie.masking import MaskGITBatch
 from genie.objectives import LossOutput
 from genie.sampling import maskgit_sample
@@ -35,12 +35,8 @@ def generate_uncached(model, prompt_BTHW: torch.Tensor, num_new_frames: int, mas
                       latent_actions: Optional[torch.Tensor] = None,
                       control: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
     """genie.inference.generate by full recomputation: same arguments, same results."""
-    check_generation(model, prompt_BTHW, num_new_frames)
-    B, T0 = prompt_BTHW.shape[:2]
-    total = T0 + num_new_frames
-    cond_BTC = model.action_embeds(B, total, actions, latent_actions, total if control else T0)
-    tokens_BTHW = torch.cat([prompt_BTHW, torch.full_like(prompt_BTHW[:, :1], model.mask_token_id)
-                             .expand(-1, num_new_frames, -1, -1)], dim=1)
+    cond_BTC, tokens_BTHW = generation_inputs(model, prompt_BTHW, num_new_frames, actions, latent_actions, control)
+    T0, total = prompt_BTHW.shape[1], tokens_BTHW.shape[1]
     all_logits = []
     for t in range(T0, total):
         def logits_fn(frame_BHW):
