@@ -1,13 +1,16 @@
 #!/usr/bin/env python
-"""The 1X challenge evaluator (docs/formats.md §5): temporally teacher-forced CE, token accuracy, LPIPS, s/frame.
+"""The 1X challenge evaluator (docs/formats.md §5): temporally teacher-forced CE, token accuracy, LPIPS, s/frame;
+or, with --protocol rollout, the 1X sampling challenge's free-running rollout scored in pixels.
 
     ./evaluate.py --val_data_dir data/val_v1.1 --checkpoint_dir 1x-technologies/GENIE_35M
+    ./evaluate.py --protocol rollout --num_prompt_frames 8 --max_examples 48
 
-Each validation window (16 frames at stride 15, non-overlapping) is predicted frame by frame from ground-truth
-prefixes with MaskGIT; the model's temporal KV cache computes the ground-truth context once and all 15 targets in
-one batched pass per MaskGIT step. Progress goes to stderr; the last line printed on stdout is one JSON object with
-loss, acc, pred_lpips (null with --skip_lpips), gen_time, dec_time (s per frame; null when nothing is decoded) and
-num_examples. Evaluation runs in one process on one device: launched with WORLD_SIZE > 1 it exits with an error.
+Teacher-forced protocol (the default). Each validation window (16 frames at stride 15, non-overlapping) is
+predicted frame by frame from ground-truth prefixes with MaskGIT; the model's temporal KV cache computes the
+ground-truth context once and all 15 targets in one batched pass per MaskGIT step. Progress goes to stderr; the
+last line printed on stdout is one JSON object with loss, acc, pred_lpips (null with --skip_lpips), gen_time,
+dec_time (s per frame; null when nothing is decoded) and num_examples. Evaluation (either protocol) runs in one
+process on one device: launched with WORLD_SIZE > 1 it exits with an error.
 
 Action-conditioned checkpoints (genie/actions.py) read their action streams from the dataset's actions/ and follow
 the challenge's rule: target frame t sees the actions of frames < t only (so with latent actions, the latent
@@ -20,6 +23,24 @@ adds three keys:
 - action_probe_acc, action_majority_rate: lam/probe.py's probe of the latent action ids against the
   true button combinations (actions/buttons.bin), fitted on --train_data_dir and scored on --val_data_dir (null
   when either lacks buttons.bin or latent_action.bin).
+
+Rollout protocol (--protocol rollout; same windows, --max_examples, --batch_size, --seed, --maskgit_steps,
+--temperature and --unmask_mode). Each window's first P = --num_prompt_frames (default 8, 1 <= P < --window_size)
+ground-truth frames are the prompt and the remaining T - P frames are generated free-running
+(genie.inference.generate: each frame from the model's own earlier ones). Action-conditioned and latent-action
+models play the window's own action rows for every frame (control, as the sampling challenge gives the future robot
+states); video-only models get none. Predicted and true
+frames are decoded with the tokenizer (also with --skip_lpips, which then only skips LPIPS) and scored per horizon
+h = 1..T-P (generated frame P + h - 1), averaged over windows; "hold" is the baseline that repeats the decoded last
+prompt frame (P - 1) for every horizon. The JSON line holds only these keys (no delta_psnr or action probe):
+- protocol ("rollout"), num_prompt_frames (P);
+- rollout_psnr, hold_psnr: lists of T - P mean PSNRs in dB (common.images.psnr, pixels 0..255), one per horizon;
+- rollout_ssim, hold_ssim: the same for SSIM (common.images.ssim: 11x11 Gaussian window, per-channel mean);
+- rollout_lpips, hold_lpips: the same for AlexNet LPIPS (null with --skip_lpips);
+- rollout_psnr_mean, hold_psnr_mean, rollout_ssim_mean, hold_ssim_mean, rollout_lpips_mean, hold_lpips_mean: the
+  means of those lists over horizons (LPIPS ones null with --skip_lpips);
+- rollout_far_psnr, hold_far_psnr: PSNR at the last horizon h = T - P (the sampling challenge's headline number);
+- gen_time: seconds per generated frame (tokens only, as above); num_examples: windows evaluated.
 """
 import argparse
 import contextlib
@@ -39,7 +60,7 @@ from tqdm import tqdm
 from common.cli import add_device_arg, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
-from common.images import psnr
+from common.images import psnr, ssim
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.actions import LATENT_ACTION_NAME, check_action_streams, latent_action_sidecar, window_actions
 from genie.config import check_dataset_matches
@@ -60,6 +81,8 @@ DEFAULT_TOKENIZER = "data/magvit2.ckpt"
 DEFAULT_TRAIN_DIR = "data/sample/train"
 BUTTONS_NAME = "buttons"  # the sample world's true actions, labels of the latent action probe
 LPIPS_CHUNK = 32  # frames per LPIPS / decoding call, bounds memory on CPU
+PROTOCOLS = ("teacher_forced", "rollout")
+DEFAULT_ROLLOUT_PROMPT_FRAMES = 8
 
 
 class EvaluationError(RuntimeError):
@@ -76,6 +99,13 @@ def default_val_data_dir() -> str:
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--protocol", choices=PROTOCOLS, default="teacher_forced",
+                        help="teacher_forced: the challenge's CE / accuracy / LPIPS protocol (default); rollout: "
+                             "prompt with the first --num_prompt_frames frames, generate the rest free-running, "
+                             "report PSNR / SSIM / LPIPS per horizon against the hold-the-last-frame baseline.")
+    parser.add_argument("--num_prompt_frames", type=int, default=None,
+                        help=f"Rollout only: ground-truth prompt frames P per window, 1 <= P < --window_size "
+                             f"(default {DEFAULT_ROLLOUT_PROMPT_FRAMES}); the other window_size - P are generated.")
     parser.add_argument("--val_data_dir", default=None,
                         help=f"Token dataset to evaluate on (default: {DEFAULT_VAL_DIR}, or {SAMPLE_VAL_DIR} when "
                              f"only that exists).")
@@ -95,11 +125,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--max_examples", type=int, default=None,
                         help="Evaluate only the first N validation windows (keeps CPU runs short).")
     parser.add_argument("--tokenizer_ckpt", default=None,
-                        help="MAGVIT2 tokenizer used to decode frames for LPIPS (default: the dataset metadata's "
-                             f"tokenizer_ckpt, else {DEFAULT_TOKENIZER}).")
+                        help="MAGVIT2 tokenizer used to decode frames for LPIPS and the rollout's PSNR / SSIM "
+                             f"(default: the dataset metadata's tokenizer_ckpt, else {DEFAULT_TOKENIZER}).")
     parser.add_argument("--skip_lpips", action="store_true",
-                        help="Skip decoding and LPIPS (no tokenizer or LPIPS weights needed); pred_lpips and "
-                             "dec_time are reported as null.")
+                        help="Skip LPIPS (no LPIPS weights needed). Teacher-forced: nothing is decoded (no tokenizer "
+                             "needed), pred_lpips and dec_time are null. Rollout: frames are still decoded for PSNR / "
+                             "SSIM, the *_lpips keys are null.")
     add_device_arg(parser)
     parser.add_argument("--seed", type=int, default=0, help="Seed of the sampler's random numbers.")
     parser.add_argument("--train_data_dir", default=DEFAULT_TRAIN_DIR,
@@ -117,17 +148,30 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--temperature must be >= 0")
     if args.window_size < 2:
         parser.error("--window_size must be >= 2 (frame 0 is the first prompt, frames 1.. are predicted)")
+    if args.protocol == "rollout":
+        if args.num_prompt_frames is None:
+            args.num_prompt_frames = DEFAULT_ROLLOUT_PROMPT_FRAMES
+        if not 1 <= args.num_prompt_frames < args.window_size:
+            parser.error(f"--num_prompt_frames must be in 1..{args.window_size - 1} (at least one prompt frame and "
+                         f"one frame to generate in windows of --window_size {args.window_size}), got "
+                         f"{args.num_prompt_frames}")
+        if args.save_outputs_dir is not None:
+            parser.error("--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
+                         "rollout")
+    elif args.num_prompt_frames is not None:
+        parser.error("--num_prompt_frames applies to --protocol rollout only")
     if args.val_data_dir is None:
         args.val_data_dir = default_val_data_dir()
     return args
 
 
 class FrameScorer:
-    """Decodes token frames with the MAGVIT2 tokenizer and scores predictions with AlexNet LPIPS."""
+    """Decodes token frames with the MAGVIT2 tokenizer and scores predictions with AlexNet LPIPS (with_lpips=False:
+    decoding only, no LPIPS weights needed)."""
 
-    def __init__(self, tokenizer_ckpt: str, device: torch.device):
+    def __init__(self, tokenizer_ckpt: str, device: torch.device, with_lpips: bool = True):
         self.tokenizer = VQModel.from_checkpoint(tokenizer_ckpt, map_location=device).eval()
-        self.lpips = LPIPS().to(device)
+        self.lpips = LPIPS().to(device) if with_lpips else None
 
     def decode(self, tokens_NHW: torch.Tensor) -> torch.Tensor:
         """(N, h, w) token ids -> uint8 images (N, H, W, 3)."""
@@ -211,6 +255,97 @@ def decoded_psnr(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tens
     return torch.cat([psnr(scorer.decode(pred_NHW[a:a + LPIPS_CHUNK]), scorer.decode(gt_NHW[a:a + LPIPS_CHUNK]),
                            value_range=(0.0, 255.0))
                       for a in range(0, len(pred_NHW), LPIPS_CHUNK)])
+
+
+def decode_frames(scorer: FrameScorer, tokens_NHW: torch.Tensor) -> torch.Tensor:
+    """(N, h, w) token ids -> uint8 images (N, H, W, 3), decoded LPIPS_CHUNK frames at a time."""
+    return torch.cat([scorer.decode(tokens_NHW[a:a + LPIPS_CHUNK]) for a in range(0, len(tokens_NHW), LPIPS_CHUNK)])
+
+
+def image_scores(scorer: FrameScorer, images_NhHW3: torch.Tensor, truth_NhHW3: torch.Tensor,
+                 with_lpips: bool) -> dict:
+    """{"psnr", "ssim"[, "lpips"]: (N, h)} of uint8 images (N, h, H, W, 3) against the true ones (same shape),
+    computed LPIPS_CHUNK frames at a time (SSIM's float64 maps of 256x256 frames are large)."""
+    N, h = images_NhHW3.shape[:2]
+    images_MHW3, truth_MHW3 = images_NhHW3.flatten(0, 1), truth_NhHW3.flatten(0, 1)
+    chunks = {"psnr": [], "ssim": [], "lpips": []} if with_lpips else {"psnr": [], "ssim": []}
+    for a in range(0, len(images_MHW3), LPIPS_CHUNK):
+        pred, true = images_MHW3[a:a + LPIPS_CHUNK], truth_MHW3[a:a + LPIPS_CHUNK]
+        chunks["psnr"].append(psnr(pred, true, value_range=(0.0, 255.0)))
+        chunks["ssim"].append(ssim(pred, true))
+        if with_lpips:
+            chunks["lpips"].append(scorer.lpips_distances(pred, true))
+    return {metric: torch.cat(values).float().view(N, h) for metric, values in chunks.items()}
+
+
+def score_rollout(scorer: FrameScorer, pred_NhHW: torch.Tensor, last_NHW: torch.Tensor, future_NhHW: torch.Tensor,
+                  with_lpips: bool) -> dict:
+    """Per-window, per-horizon scores of generated frames and of the hold baseline, in pixels.
+
+    pred_NhHW: generated token frames (N, h, H, W), h = T - P horizons; last_NHW: the prompt's last token frame
+    (N, H, W); future_NhHW: the true token frames the prediction replaces (N, h, H, W).
+    Returns {"rollout_psnr", "hold_psnr", "rollout_ssim", "hold_ssim"[, "rollout_lpips", "hold_lpips"]: (N, h)}.
+    """
+    N, h = pred_NhHW.shape[:2]
+    truth_NhHW3 = decode_frames(scorer, future_NhHW.flatten(0, 1)).unflatten(0, (N, h))
+    pred_NhHW3 = decode_frames(scorer, pred_NhHW.flatten(0, 1)).unflatten(0, (N, h))
+    hold_NHW3 = decode_frames(scorer, last_NHW)  # decoded once per window, repeated over the horizons
+    hold_NhHW3 = hold_NHW3.unsqueeze(1).expand(-1, h, -1, -1, -1)
+    scores = {}
+    for name, images_NhHW3 in (("rollout", pred_NhHW3), ("hold", hold_NhHW3)):
+        for metric, values_Nh in image_scores(scorer, images_NhHW3, truth_NhHW3, with_lpips).items():
+            scores[f"{name}_{metric}"] = values_Nh
+    return scores
+
+
+def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_time: Optional[float]) -> dict:
+    """The rollout JSON line (module doc) from per-horizon score sums {"rollout_psnr": (h,), ...} over windows."""
+    result = {"protocol": "rollout", "num_prompt_frames": num_prompt_frames}
+    keys = [f"{name}_{metric}" for metric in ("psnr", "ssim", "lpips") for name in ("rollout", "hold")]
+    for key in keys:  # LPIPS is missing from the sums with --skip_lpips
+        result[key] = (sums[key] / num_examples).tolist() if key in sums and num_examples else None
+    for key in keys:
+        result[f"{key}_mean"] = None if result[key] is None else sum(result[key]) / len(result[key])
+    for name in ("rollout", "hold"):
+        result[f"{name}_far_psnr"] = None if result[f"{name}_psnr"] is None else result[f"{name}_psnr"][-1]
+    result["gen_time"] = gen_time
+    result["num_examples"] = num_examples
+    return result
+
+
+@torch.no_grad()
+def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
+                     scorer: FrameScorer) -> dict:
+    """Run the rollout protocol over `loader` (module doc); return the metrics dict (the JSON line's content)."""
+    P = args.num_prompt_frames
+    with_lpips = not args.skip_lpips
+    generator = torch.Generator(device=device).manual_seed(args.seed)
+    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
+                else contextlib.nullcontext())
+    gen_time, sums, num_examples = RunningMean(), {}, 0
+    progress = tqdm(loader, desc="rollout", unit="batch", file=sys.stderr)
+    for batch in progress:
+        x_BTHW = batch["tokens"].to(device)
+        B, T = x_BTHW.shape[:2]
+        # every row of the window is played: the sampling challenge gives the future actions (robot states)
+        actions_BTD, latent_BT = batch_actions(model, batch, device, args)
+
+        _synchronize(device)
+        start = time.perf_counter()
+        with autocast:
+            tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, args.maskgit_steps, args.temperature,
+                                      args.unmask_mode, generator=generator, actions=actions_BTD,
+                                      latent_actions=latent_BT, control=True)
+        _synchronize(device)
+        gen_time.update(time.perf_counter() - start, B * (T - P))
+
+        scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips)
+        for key, values_Bh in scores.items():
+            sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
+        num_examples += B
+        progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
+                              "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
+    return rollout_result(sums, num_examples, P, gen_time.mean)
 
 
 @torch.no_grad()
@@ -301,6 +436,21 @@ def save_outputs(out_dir: str, windows: list, dataset, window_size: int) -> None
                                   "num_examples": len(video_WFHW)}, overwrite=True)
 
 
+def frame_scorer(args: argparse.Namespace, dataset: RawTokenDataset, device: torch.device) -> FrameScorer:
+    """The FrameScorer of --tokenizer_ckpt, else the dataset metadata's tokenizer, else DEFAULT_TOKENIZER; with
+    LPIPS unless --skip_lpips."""
+    tokenizer_ckpt = args.tokenizer_ckpt or dataset.metadata.get("tokenizer_ckpt") or DEFAULT_TOKENIZER
+    try:
+        return FrameScorer(tokenizer_ckpt, device, with_lpips=not args.skip_lpips)
+    except (FileNotFoundError, ValueError) as e:  # missing tokenizer / LPIPS weights, unreadable checkpoint
+        if args.protocol == "rollout":
+            raise EvaluationError(f"cannot set up decoding{'' if args.skip_lpips else ' + LPIPS'}: {e}\nThe rollout "
+                                  f"protocol decodes frames for PSNR and SSIM: pass --tokenizer_ckpt (and "
+                                  f"--skip_lpips to go without LPIPS weights).") from None
+        raise EvaluationError(f"cannot set up decoding + LPIPS: {e}\nPass --skip_lpips to evaluate without "
+                              f"decoding frames.") from None
+
+
 def run(args: argparse.Namespace) -> dict:
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     if world_size > 1:
@@ -321,14 +471,9 @@ def run(args: argparse.Namespace) -> dict:
     logger.info("evaluating %d windows of %s with %s on %s", num_windows, args.val_data_dir, args.checkpoint_dir,
                 device)
 
-    scorer = None
-    if not args.skip_lpips:
-        tokenizer_ckpt = args.tokenizer_ckpt or dataset.metadata.get("tokenizer_ckpt") or DEFAULT_TOKENIZER
-        try:
-            scorer = FrameScorer(tokenizer_ckpt, device)
-        except (FileNotFoundError, ValueError) as e:  # missing tokenizer / LPIPS weights, unreadable checkpoint
-            raise EvaluationError(f"cannot set up decoding + LPIPS: {e}\nPass --skip_lpips to evaluate without "
-                                  f"decoding frames.") from None
+    if args.protocol == "rollout":
+        return rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device))
+    scorer = None if args.skip_lpips else frame_scorer(args, dataset, device)
     outputs = [] if args.save_outputs_dir else None
     with torch.no_grad():
         result = evaluate(model, loader, args, device, scorer, outputs)

@@ -3,10 +3,11 @@
 #   1. train a small GENIE on data/sample/train          -> data/genie_model/final_checkpt
 #   2. generate from held-out prompts of data/sample/val -> data/genie_model/generated (tokens)
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
-#   4. evaluate with the challenge metrics + the copy-the-last-frame baselines -> data/genie_model/*.json
+#   4. evaluate with the challenge metrics, the copy-the-last-frame baselines and the rollout protocol
+#      -> data/genie_model/*.json
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
-# variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, EVAL_ARGS and
-# LPIPS_EVAL_ARGS (extra evaluate.py flags of the two evaluations) change the defaults below.
+# variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, EVAL_ARGS, LPIPS_EVAL_ARGS and
+# ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations) change the defaults below.
 set -euo pipefail
 cd "$(dirname "$0")"
 PY=venv/bin/python
@@ -32,8 +33,14 @@ VAL=$SAMPLE_DIR/val
 "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" ${LPIPS_EVAL_ARGS:---max_examples 60} \
   | tee "$OUT/eval_lpips.log"
 "$PY" -m genie.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" | tee "$OUT/baselines.log"
+# The 1X sampling challenge's form: 8 prompt frames, the other 8 generated free-running, PSNR / SSIM / LPIPS per
+# horizon against holding the last prompt frame.
+"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --protocol rollout \
+  ${ROLLOUT_EVAL_ARGS:---max_examples 48 --num_prompt_frames 8} | tee "$OUT/eval_rollout.log"
 tail -n 1 "$OUT/eval.log" > "$OUT/metrics.json"
 tail -n 1 "$OUT/eval_lpips.log" > "$OUT/metrics_lpips.json"
 tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"
+tail -n 1 "$OUT/eval_rollout.log" > "$OUT/metrics_rollout.json"
 echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png"
-echo "metrics: $OUT/metrics.json (LPIPS: $OUT/metrics_lpips.json; copy baselines: $OUT/baselines.json)"
+echo "metrics: $OUT/metrics.json (LPIPS: $OUT/metrics_lpips.json; copy baselines: $OUT/baselines.json;"
+echo "         rollout: $OUT/metrics_rollout.json)"

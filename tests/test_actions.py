@@ -310,13 +310,14 @@ def test_generate_plays_latent_actions_and_writes_them(action_data, latent_ckpt,
 @pytest.fixture
 def stub_scorer(monkeypatch):
     class StubScorer:
-        """Decodes token t to a flat image of value t % 256."""
+        """Decodes token t to a flat 4x4 patch of value t % 256 (16x16 images: SSIM needs 11x11)."""
 
-        def __init__(self, tokenizer_ckpt, device):
+        def __init__(self, tokenizer_ckpt, device, with_lpips=True):
             pass
 
         def decode(self, tokens_NHW):
-            return (tokens_NHW % 256).to(torch.uint8)[:, :, :, None].expand(-1, -1, -1, 3)
+            images_NHW = (tokens_NHW % 256).to(torch.uint8).repeat_interleave(4, 1).repeat_interleave(4, 2)
+            return images_NHW[:, :, :, None].expand(-1, -1, -1, 3)
 
         def lpips_distances(self, images_a, images_b):
             return (images_a.float() - images_b.float()).abs().mean(dim=(1, 2, 3)) / 255
@@ -342,6 +343,28 @@ def test_evaluate_adds_latent_action_metrics(action_data, latent_ckpt, tmp_path,
     model.save_pretrained(tmp_path / "inert")
     assert evaluate.main(argv + ["--checkpoint_dir", str(tmp_path / "inert")]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["delta_psnr"] == 0.0
+
+
+def test_rollout_plays_the_windows_action_rows(action_data, latent_ckpt, capsys, monkeypatch, stub_scorer):
+    calls = []
+
+    def spy(model, prompt_BTHW, num_new_frames, *args, **kwargs):
+        calls.append((prompt_BTHW.shape[1], num_new_frames, kwargs))
+        return generate(model, prompt_BTHW, num_new_frames, *args, **kwargs)
+
+    monkeypatch.setattr(evaluate, "generate", spy)
+    argv = ["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(latent_ckpt), "--window_size", "4",
+            "--stride", "1", "--batch_size", "4", "--device", "cpu", "--max_examples", "4", "--tokenizer_ckpt",
+            "stub", "--skip_lpips", "--protocol", "rollout", "--num_prompt_frames", "1"]
+    assert evaluate.main(argv) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["num_examples"] == 4 and len(result["rollout_psnr"]) == 3
+    assert "delta_psnr" not in result  # the rollout protocol reports its own keys only
+    (prompt_frames, new_frames, kwargs), = calls
+    assert (prompt_frames, new_frames, kwargs["control"]) == (1, 3, True)
+    val = RawTokenDataset(action_data["val"], window_size=4, stride=1, filter_overlaps=True)
+    rows = np.stack([val[i]["actions"]["latent_action"][:, 0] for i in range(4)])
+    np.testing.assert_array_equal(kwargs["latent_actions"].numpy(), rows)  # every row of the window is played
 
 
 def test_evaluate_needs_the_checkpoints_action_streams(latent_ckpt, tmp_path, capsys):

@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader
 
 from common.images import psnr
 from data import RawTokenDataset, read_metadata, write_token_dataset
-from evaluate import evaluate, main
+from evaluate import FrameScorer, evaluate, main, rollout_result, score_rollout
 from genie import GenieConfig, STMaskGIT
 from genie.metrics import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
                            token_accuracy)
@@ -23,6 +23,10 @@ from genie.inference import teacher_forced
 REPO = Path(__file__).resolve().parents[1]
 VOCAB = 64 ** 2
 JSON_KEYS = {"loss", "acc", "pred_lpips", "gen_time", "dec_time", "num_examples"}
+ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold")
+                       for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
+ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
+                                     "gen_time", "num_examples"}
 
 
 # ------------------------------------------------------------------ metric functions
@@ -111,10 +115,29 @@ def last_json_line(text: str) -> dict:
     return json.loads(text.strip().splitlines()[-1])
 
 
+def make_tokenizer(path: Path) -> Path:
+    """A random MAGVIT2 tokenizer decoding the 4x4 token frames of make_dataset to 32x32 images."""
+    from magvit2 import VQConfig, VQModel
+    torch.manual_seed(0)
+    VQModel(VQConfig(z_channels=12, codebook_size=VOCAB, base_channels=32, ch_mult=[1, 1, 1, 1], num_res_blocks=1,
+                     resolution=32)).save_pretrained(path)
+    return path
+
+
+def lpips_weights_available() -> bool:
+    from magvit2.lpips import LPIPS, LPIPSWeightsNotFound
+    try:
+        LPIPS()
+    except LPIPSWeightsNotFound:
+        return False
+    return True
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
-    return SimpleNamespace(data=make_dataset(root / "val"), ckpt=make_checkpoint(root / "ckpt"), root=root)
+    return SimpleNamespace(data=make_dataset(root / "val"), ckpt=make_checkpoint(root / "ckpt"),
+                           tokenizer=make_tokenizer(root / "tokenizer"), root=root)
 
 
 def test_json_line_metrics_and_saved_outputs(tiny, capsys):
@@ -170,18 +193,9 @@ def test_lpips_and_decode_time_with_a_stub_scorer(tiny):
 
 
 def test_real_tokenizer_and_lpips(tiny, capsys):
-    from magvit2 import VQConfig, VQModel
-    from magvit2.lpips import LPIPS, LPIPSWeightsNotFound
-    try:
-        LPIPS()
-    except LPIPSWeightsNotFound:
+    if not lpips_weights_available():
         pytest.skip("no LPIPS weights on this machine (python -m magvit2.lpips_weights makes them)")
-    torch.manual_seed(0)
-    tokenizer = VQModel(VQConfig(z_channels=12, codebook_size=VOCAB, base_channels=32, ch_mult=[1, 1, 1, 1],
-                                 num_res_blocks=1, resolution=32))
-    tokenizer.save_pretrained(tiny.root / "tokenizer")
-    assert main(eval_args(tiny.data, tiny.ckpt, "--max_examples", "2", "--tokenizer_ckpt",
-                          str(tiny.root / "tokenizer"))) == 0
+    assert main(eval_args(tiny.data, tiny.ckpt, "--max_examples", "2", "--tokenizer_ckpt", str(tiny.tokenizer))) == 0
     result = last_json_line(capsys.readouterr().out)
     assert result["pred_lpips"] >= 0 and result["dec_time"] > 0
 
@@ -227,3 +241,93 @@ def test_bad_inputs_give_clear_errors(tiny, tmp_path, capsys, monkeypatch, case,
     captured = capsys.readouterr()
     assert message in captured.err
     assert captured.out == ""
+
+
+# ------------------------------------------------------------------ rollout protocol
+class ImageStub(StubScorer):
+    """StubScorer with 32x32 images (token t -> an 8x8 patch of value t % 256): SSIM needs 11x11."""
+
+    def decode(self, tokens_NHW):
+        return super().decode(tokens_NHW).repeat_interleave(8, 2)
+
+
+def test_a_copying_model_scores_exactly_like_the_hold_baseline(tiny):
+    rng = np.random.default_rng(0)
+    last_NHW = torch.from_numpy(rng.integers(0, VOCAB, (3, 4, 4)))
+    future_NhHW = torch.from_numpy(rng.integers(0, VOCAB, (3, 5, 4, 4)))
+    copy_NhHW = last_NHW.unsqueeze(1).expand(-1, 5, -1, -1)
+    scorers = [ImageStub()]
+    if lpips_weights_available():
+        scorers.append(FrameScorer(str(tiny.tokenizer), torch.device("cpu")))
+    for scorer in scorers:
+        scores = score_rollout(scorer, copy_NhHW, last_NHW, future_NhHW, with_lpips=True)
+        assert set(scores) == {f"{n}_{m}" for n in ("rollout", "hold") for m in ("psnr", "ssim", "lpips")}
+        for metric in ("psnr", "ssim", "lpips"):
+            assert scores[f"rollout_{metric}"].shape == (3, 5)
+            assert torch.equal(scores[f"rollout_{metric}"], scores[f"hold_{metric}"])
+        result = rollout_result({k: v.double().sum(dim=0) for k, v in scores.items()}, 3, 8, 0.1)
+        for key in ("psnr", "ssim", "lpips", "psnr_mean", "ssim_mean", "lpips_mean", "far_psnr"):
+            assert result[f"rollout_{key}"] == result[f"hold_{key}"]
+
+
+def test_rollout_scores_each_horizon_against_its_true_frame():
+    stub = ImageStub()
+    last_NHW = torch.full((2, 4, 4), 10)
+    future_NhHW = torch.full((2, 3, 4, 4), 60)
+    pred_NhHW = torch.full((2, 3, 4, 4), 35)
+    pred_NhHW[:, 1] = 60  # horizon 2 is right
+    future_NhHW[:, 2] = 10  # at horizon 3 the world came back to the prompt's last frame
+    scores = score_rollout(stub, pred_NhHW, last_NHW, future_NhHW, with_lpips=False)
+    assert set(scores) == {"rollout_psnr", "hold_psnr", "rollout_ssim", "hold_ssim"}
+    psnr_25 = -10 * math.log10((25 / 255) ** 2)
+    torch.testing.assert_close(scores["rollout_psnr"], torch.tensor([[psnr_25, 100.0, psnr_25]] * 2))
+    torch.testing.assert_close(scores["hold_psnr"], torch.tensor([[-10 * math.log10((50 / 255) ** 2)] * 2 + [100.0]]
+                                                                 * 2))
+    assert scores["rollout_ssim"][0, 1] == pytest.approx(1.0) and scores["hold_ssim"][0, 2] == pytest.approx(1.0)
+    assert scores["rollout_ssim"][0, 0] < 1.0
+
+
+def test_rollout_protocol_json_line(tiny, capsys):
+    assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3",
+                          "--max_examples", "4", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips")) == 0
+    result = last_json_line(capsys.readouterr().out)
+    assert set(result) == ROLLOUT_KEYS
+    assert (result["protocol"], result["num_prompt_frames"], result["num_examples"]) == ("rollout", 3, 4)
+    for name in ("rollout", "hold"):
+        assert len(result[f"{name}_psnr"]) == len(result[f"{name}_ssim"]) == 8 - 3
+        assert result[f"{name}_lpips"] is None and result[f"{name}_lpips_mean"] is None
+        assert result[f"{name}_far_psnr"] == result[f"{name}_psnr"][-1]
+        assert result[f"{name}_psnr_mean"] == pytest.approx(np.mean(result[f"{name}_psnr"]))
+        assert all(-1 <= v <= 1 for v in result[f"{name}_ssim"])
+    assert result["gen_time"] > 0
+
+    if not lpips_weights_available():
+        return
+    assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3",
+                          "--max_examples", "4", "--tokenizer_ckpt", str(tiny.tokenizer))) == 0
+    with_lpips = last_json_line(capsys.readouterr().out)
+    assert len(with_lpips["rollout_lpips"]) == len(with_lpips["hold_lpips"]) == 5
+    assert with_lpips["rollout_lpips_mean"] >= 0
+    assert with_lpips["rollout_psnr"] == result["rollout_psnr"]  # same seed, same frames
+    assert with_lpips["hold_psnr"] == result["hold_psnr"]
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--protocol", "rollout", "--num_prompt_frames", "0"], "--num_prompt_frames must be in 1..7"),
+    (["--protocol", "rollout", "--num_prompt_frames", "8"], "--num_prompt_frames must be in 1..7"),
+    (["--num_prompt_frames", "3"], "--protocol rollout only"),
+    (["--protocol", "rollout", "--num_prompt_frames", "3", "--save_outputs_dir", "out"],
+     "does not apply to --protocol rollout"),
+])
+def test_bad_rollout_flags_are_usage_errors(tiny, capsys, extra, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(eval_args(tiny.data, tiny.ckpt, *extra))
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_rollout_needs_a_tokenizer_even_with_skip_lpips(tiny, tmp_path, capsys):
+    assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3", "--skip_lpips",
+                          "--tokenizer_ckpt", str(tmp_path / "nope.ckpt"))) == 1
+    captured = capsys.readouterr()
+    assert "decodes frames for PSNR and SSIM" in captured.err and captured.out == ""

@@ -37,7 +37,8 @@ def test_main_job_pipeline_tiny(tmp_path):
                                   "image_vocab_size": 262144, "num_prompt_frames": 8}))
     out = tmp_path / "model"
     env = dict(os.environ, SAMPLE_DIR=str(sample), OUT=str(out), GENIE_CONFIG=str(config),
-               EVAL_ARGS="--max_examples 1", LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", NUM_EXAMPLES="1")
+               EVAL_ARGS="--max_examples 1", LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", NUM_EXAMPLES="1",
+               ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8")
     subprocess.run(["bash", str(REPO / "run_sample.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     assert (out / "final_checkpt" / "model.safetensors").exists()
@@ -49,3 +50,7 @@ def test_main_job_pipeline_tiny(tmp_path):
     assert json.loads((out / "metrics_lpips.json").read_text())["num_examples"] == 1
     baselines = json.loads((out / "baselines.json").read_text())
     assert 0 <= baselines["copy_acc"] <= 1
+    rollout = json.loads((out / "metrics_rollout.json").read_text())
+    assert (rollout["protocol"], rollout["num_prompt_frames"], rollout["num_examples"]) == ("rollout", 8, 1)
+    assert len(rollout["rollout_psnr"]) == len(rollout["hold_ssim"]) == 16 - 8
+    assert rollout["rollout_far_psnr"] == rollout["rollout_psnr"][-1] and rollout["rollout_lpips"] is None
