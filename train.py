@@ -45,15 +45,15 @@ from common.cli import setup_logging
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
-from genie.masking import get_maskgit_collator
 from genie.actions import action_statistics, check_action_streams, latent_action_sidecar, stream_dims
 from genie.checkpoint import load_state_dict_checked
 from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
-from genie.masking import MaskGITBatch
+from genie.masking import MaskGITBatch, get_maskgit_collator
 from genie.model import STMaskGIT
+from common.files import remove_stale_temp_dirs
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
-                               checkpoint_dir, load_training_checkpoint, prune_checkpoints, remove_stale_temp_dirs,
-                               resolve_resume_path, restore_rng_state, resume_hint, save_training_checkpoint)
+                               checkpoint_dir, load_training_checkpoint, prune_checkpoints, resolve_resume_path,
+                               restore_rng_state, resume_hint, save_training_checkpoint)
 
 logger = logging.getLogger("train")
 

@@ -24,8 +24,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from common.files import (COMPLETE_MARKER, TMP_PREFIX, atomic_directory, atomic_file, is_complete,
-                          remove_stale_temp_dirs)
+from common.files import COMPLETE_MARKER, TMP_PREFIX, atomic_directory, is_complete
 from common.integrity import verify_manifest
 
 CHECKPOINT_PREFIX = "checkpoint-"

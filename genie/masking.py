@@ -60,9 +60,6 @@ class MaskGITBatch:
         return MaskGITBatch(**{f.name: None if getattr(self, f.name) is None else
                                getattr(self, f.name).to(device, non_blocking=non_blocking) for f in fields(self)})
 
-    def __len__(self) -> int:
-        return self.input_ids.shape[0]
-
 
 def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] = None, seed=None):
     """Return collate_fn(items) -> MaskGITBatch.

@@ -45,13 +45,12 @@ from tqdm.auto import tqdm
 
 from common.cli import add_device_arg, add_hidden_alias, resolve_device, setup_logging
 from common.errors import TrainingError, WriteError, writing
-from common.files import write_json_atomic
+from common.files import remove_stale_temp_dirs, write_json_atomic
 from common.integrity import verify_manifest
 from common.config import ConfigError
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
-                               checkpoint_dir, prune_checkpoints, read_json, remove_stale_temp_dirs,
-                               resolve_resume_path, restore_rng_state, resume_hint, save_state_files,
-                               load_state_files)
+                               checkpoint_dir, prune_checkpoints, read_json, resolve_resume_path, restore_rng_state,
+                               resume_hint, save_state_files, load_state_files)
 from magvit2.config import VQConfig
 from magvit2.lpips import LPIPS, MIN_SIDE as LPIPS_MIN_SIDE, LPIPSWeightsNotFound
 from magvit2.losses import GAN_LOSSES, GAN_WEIGHTINGS, VQLoss

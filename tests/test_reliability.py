@@ -15,9 +15,10 @@ import torch
 
 import train
 from genie import GenieConfig, STMaskGIT
+from common.files import remove_stale_temp_dirs
 from common.train_state import (COMPLETE_MARKER, TrainingStateError, atomic_directory, capture_rng_state,
-                               list_checkpoints, load_state_files, load_training_checkpoint, remove_stale_temp_dirs,
-                               resolve_resume_path, restore_rng_state, save_state_files)
+                               list_checkpoints, load_state_files, load_training_checkpoint, resolve_resume_path,
+                               restore_rng_state, save_state_files)
 from tests.test_train import (assert_same_weights, load_weights, make_token_dataset, masked_val_loss, train_argv,
                               write_config)
 
