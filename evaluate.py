@@ -8,8 +8,9 @@ or, with --protocol rollout, the 1X sampling challenge's free-running rollout sc
 Teacher-forced protocol (the default). Each validation window (16 frames at stride 15, non-overlapping) is
 predicted frame by frame from ground-truth prefixes with MaskGIT; the model's temporal KV cache computes the
 ground-truth context once and all 15 targets in one batched pass per MaskGIT step. Progress goes to stderr; the
-last line printed on stdout is one JSON object with loss, acc, pred_lpips (null with --skip_lpips), gen_time,
-dec_time (s per frame; null when nothing is decoded) and num_examples. Evaluation (either protocol) runs in one
+last line printed on stdout is one JSON object with loss, acc, copy_acc (the accuracy of copying ground-truth frame
+t-1 on the same windows, the baseline acc must beat), pred_lpips (null with --skip_lpips), gen_time, dec_time (s
+per frame; null when nothing is decoded) and num_examples. Evaluation (either protocol) runs in one
 process on one device: launched with WORLD_SIZE > 1 it exits with an error.
 
 Action-conditioned checkpoints (genie/actions.py) read their action streams from the dataset's actions/ and follow
@@ -50,7 +51,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Optional
+from typing import List, Optional
 
 import numpy as np
 import torch
@@ -123,7 +124,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="Write the predictions as a token dataset in the generated layout: per window, "
                              "frame 0 | predicted frames 1..T-1 | ground truth frames 1..T-1.")
     parser.add_argument("--max_examples", type=int, default=None,
-                        help="Evaluate only the first N validation windows (keeps CPU runs short).")
+                        help="Evaluate only N validation windows (keeps CPU runs short): the first N, or N evenly "
+                             "spaced over the dataset with --spread_examples.")
+    parser.add_argument("--spread_examples", action="store_true",
+                        help="With --max_examples: take the N windows evenly spaced over the whole dataset (every "
+                             "episode and map represented) instead of the first N (the start of the first episodes).")
     parser.add_argument("--tokenizer_ckpt", default=None,
                         help="MAGVIT2 tokenizer used to decode frames for LPIPS and the rollout's PSNR / SSIM "
                              f"(default: the dataset metadata's tokenizer_ckpt, else {DEFAULT_TOKENIZER}).")
@@ -202,7 +207,7 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
 
     outputs: when a list, per-window frames (prompt | predictions | ground truth) are appended to it as numpy.
     """
-    metrics = {name: RunningMean() for name in ("loss", "acc", "pred_lpips", "gen_time", "dec_time")}
+    metrics = {name: RunningMean() for name in ("loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time")}
     generator = torch.Generator(device=device).manual_seed(args.seed)
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
@@ -225,6 +230,7 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
 
         metrics["loss"].update(factored_cross_entropy(logits_BVFTHW, targets_BTHW).sum().item(), targets_BTHW.numel())
         metrics["acc"].update((samples_BTHW == targets_BTHW).sum().item(), targets_BTHW.numel())
+        metrics["copy_acc"].update((x_BTHW[:, :-1] == targets_BTHW).sum().item(), targets_BTHW.numel())
         if scorer is not None:
             score_frames(scorer, samples_BTHW.flatten(0, 1), targets_BTHW.flatten(0, 1), metrics, device)
         if outputs is not None:
@@ -232,7 +238,7 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
         num_examples += B
         progress.set_postfix({name: f"{m.mean:.4g}" for name, m in metrics.items() if m.mean is not None})
 
-    result = {name: metrics[name].mean for name in ("loss", "acc", "pred_lpips", "gen_time", "dec_time")}
+    result = {name: metrics[name].mean for name in ("loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time")}
     result["num_examples"] = num_examples
     return result
 
@@ -451,6 +457,15 @@ def frame_scorer(args: argparse.Namespace, dataset: RawTokenDataset, device: tor
                               f"decoding frames.") from None
 
 
+def example_indices(num_windows: int, max_examples: Optional[int], spread: bool) -> List[int]:
+    """Which windows to evaluate: all, the first max_examples, or (spread) max_examples evenly spaced ones."""
+    if max_examples is None or max_examples >= num_windows:
+        return list(range(num_windows))
+    if not spread:
+        return list(range(max_examples))
+    return [i * num_windows // max_examples for i in range(max_examples)]
+
+
 def run(args: argparse.Namespace) -> dict:
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     if world_size > 1:
@@ -466,8 +481,9 @@ def run(args: argparse.Namespace) -> dict:
                           exact_window=False)
     if model.config.uses_actions:
         check_action_streams(model.config, dataset)
-    num_windows = len(dataset) if args.max_examples is None else min(args.max_examples, len(dataset))
-    loader = DataLoader(Subset(dataset, range(num_windows)), batch_size=args.batch_size, shuffle=False)
+    indices = example_indices(len(dataset), args.max_examples, args.spread_examples)
+    num_windows = len(indices)
+    loader = DataLoader(Subset(dataset, indices), batch_size=args.batch_size, shuffle=False)
     logger.info("evaluating %d windows of %s with %s on %s", num_windows, args.val_data_dir, args.checkpoint_dir,
                 device)
 

@@ -7,7 +7,9 @@
 #      -> data/genie_model/*.json
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
 # variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, EVAL_ARGS, LPIPS_EVAL_ARGS and
-# ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations) change the defaults below.
+# ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations) change the defaults below. When
+# UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated there
+# (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json.
 set -euo pipefail
 cd "$(dirname "$0")"
 PY=venv/bin/python
@@ -36,7 +38,16 @@ VAL=$SAMPLE_DIR/val
 # The 1X sampling challenge's form: 8 prompt frames, the other 8 generated free-running, PSNR / SSIM / LPIPS per
 # horizon against holding the last prompt frame.
 "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --protocol rollout \
-  ${ROLLOUT_EVAL_ARGS:---max_examples 48 --num_prompt_frames 8} | tee "$OUT/eval_rollout.log"
+  ${ROLLOUT_EVAL_ARGS:---max_examples 48 --spread_examples --num_prompt_frames 8} | tee "$OUT/eval_rollout.log"
+UNSEEN_DIR=${UNSEEN_DIR:-data/unseen}
+if [ -f "$UNSEEN_DIR/val/metadata.json" ]; then
+  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$UNSEEN_DIR/val" --skip_lpips ${EVAL_ARGS:-} \
+    | tee "$OUT/eval_unseen.log"
+  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$UNSEEN_DIR/val" --protocol rollout \
+    ${ROLLOUT_EVAL_ARGS:---max_examples 48 --spread_examples --num_prompt_frames 8} | tee "$OUT/eval_rollout_unseen.log"
+  tail -n 1 "$OUT/eval_unseen.log" > "$OUT/metrics_unseen.json"
+  tail -n 1 "$OUT/eval_rollout_unseen.log" > "$OUT/metrics_rollout_unseen.json"
+fi
 tail -n 1 "$OUT/eval.log" > "$OUT/metrics.json"
 tail -n 1 "$OUT/eval_lpips.log" > "$OUT/metrics_lpips.json"
 tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"

@@ -218,9 +218,11 @@ def build_model(config: GenieConfig, warmstart_path) -> STMaskGIT:
     if warmstart_path is not None:
         source = STMaskGIT.from_pretrained(warmstart_path)
         state = source.state_dict()
-        if source.action_cond is None and model.action_cond is not None:
-            # warm-starting an action-conditioned model from a video-only one: the action inputs start fresh
-            state.update({f"action_cond.{k}": v for k, v in model.action_cond.state_dict().items()})
+        # opt-in modules the source lacks (action inputs, the copy head: e.g. fine-tuning GENIE_35M with them)
+        # start fresh; everything else must match
+        for name in ("action_cond", "copy_head"):
+            if getattr(source, name) is None and getattr(model, name) is not None:
+                state.update({f"{name}.{k}": v for k, v in getattr(model, name).state_dict().items()})
         load_state_dict_checked(model, state, source=f"--warmstart_path {warmstart_path}")
     return model
 

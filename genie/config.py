@@ -55,6 +55,12 @@ class GenieConfig:
     action_std: Optional[List[float]] = None
     num_latent_actions: int = 0  # LAM codebook size; ids come from actions/latent_action.bin (0 = off)
     action_dropout: float = 0.1  # training: probability that a frame's action inputs are replaced by "no action"
+    # Previous-frame pointer (genie/copy_head.py): each predicted token may copy a token of frame t-1 up to this
+    # many positions away in each direction, mixed with the readout. None: off, no parameters.
+    copy_radius: Optional[int] = None
+    # With the pointer: each token's input also gets + embed(which of those neighbours in its previous frame hold the
+    # same token), so the model sees how the scene moved at every position (motion evidence for the pointer).
+    copy_match_input: bool = False
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -75,6 +81,11 @@ class GenieConfig:
         if not 1 <= self.num_prompt_frames < self.T:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         self._check_actions()
+        if self.copy_radius is not None and not 0 <= self.copy_radius < math.isqrt(self.S):
+            raise ConfigError(f"GenieConfig: copy_radius must be None (off) or in [0, {math.isqrt(self.S)}), "
+                              f"got {self.copy_radius}")
+        if self.copy_match_input and self.copy_radius is None:
+            raise ConfigError("GenieConfig: copy_match_input needs copy_radius (the neighbours it compares)")
 
     def _check_actions(self) -> None:
         names = self.action_names

@@ -2,6 +2,8 @@
 
 token ids (B, T, H, W) -> embed (factored token embeddings + positions + optional action embeddings)
 -> spatio-temporal transformer -> factored readout: logits (B, V, F, T, H, W), factor f of value v.
+Opt-in (config.copy_radius): the readout is mixed with a pointer to the previous frame's tokens (genie/copy_head.py),
+whose "logits" are then log-probabilities; every path that reads out passes the frame before each frame for it.
 Parameter names, shapes and math follow docs/formats.md §3. The training objectives live in genie/objectives.py
 (`forward` computes them, so DDP sees one call), inference in genie/inference.py, the uncached reference versions
 in genie/reference.py and checkpoint files in genie/checkpoint.py.
@@ -18,6 +20,7 @@ from torch import nn
 from genie import checkpoint, objectives
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, TrainingRecipe
+from genie.copy_head import CopyHead, previous_frames
 from genie.factorization import factorize_token_ids
 from genie.kv_cache import TemporalKVCache
 from genie.masking import MaskGITBatch
@@ -63,6 +66,9 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.readout_width_mult = config.d_model / MUP_BASE_D_MODEL if config.use_mup else None
         # only when enabled, so the published parameter layout is unchanged
         self.action_cond = ActionConditioning(config) if config.uses_actions else None
+        self.copy_head = None if config.copy_radius is None else CopyHead(
+            config.d_model, config.copy_radius, config.num_factored_vocabs, config.factored_vocab_size,
+            config.mask_token_id, config.copy_match_input)
 
     @property
     def mask_token_id(self) -> int:
@@ -119,24 +125,42 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
 
     def hidden_states(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None, first_frame: int = 0,
                       mode: TemporalMode = TemporalMode.CAUSAL,
-                      kv_cache: Optional[TemporalKVCache] = None) -> Optional[torch.Tensor]:
+                      kv_cache: Optional[TemporalKVCache] = None,
+                      sources_BTSK: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
         """Frames first_frame.. (B, T, H, W) -> final hidden states (B, T, S, C), before the readout.
 
         cond_BTC: action embeddings of these frames (B, T, C) or None. mode / kv_cache: how the frames attend over
         time (genie/transformer.py TemporalMode); PREFILL only fills the cache and returns None.
+        sources_BTSK: `copy_sources` of these frames; required when the config sets copy_match_input.
         """
         T = x_BTHW.shape[1]
         x_BTSC = (self.token_embed(rearrange(x_BTHW, "B T H W -> B T (H W)"))
                   + self.pos_embed_TSC[:, first_frame:first_frame + T])
+        if self.config.copy_match_input:
+            if sources_BTSK is None:
+                raise ValueError("this model embeds previous-frame matches (copy_match_input): pass copy_sources")
+            x_BTSC = x_BTSC + self.copy_head.match_embedding(x_BTHW, sources_BTSK).to(x_BTSC.dtype)
         if cond_BTC is not None:
             x_BTSC = x_BTSC + cond_BTC.unsqueeze(2).to(x_BTSC.dtype)
         return self.decoder(x_BTSC, mode, kv_cache)
 
-    def readout(self, x_NC: torch.Tensor) -> torch.Tensor:
-        """Hidden states (..., C) -> factored logits (..., V, F)."""
-        if self.readout_width_mult is not None:
-            x_NC = x_NC / self.readout_width_mult
-        return rearrange(self.out_x_proj(x_NC), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
+    def copy_sources(self, prev_BTHW: torch.Tensor) -> Optional[torch.Tensor]:
+        """Tokens of the frame before each frame (B, T, H, W) (mask_token_id where unknown) -> what the copy head
+        may copy at each position (B, T, S, K); None for a model without one (the published layout)."""
+        return None if self.copy_head is None else self.copy_head.sources(prev_BTHW)
+
+    def readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Hidden states (..., C) -> factored logits (..., V, F).
+
+        sources_NK (..., K): `copy_sources` at the same positions, required when the model has a copy head (its
+        logits are then log-probabilities of the mixture, genie/copy_head.py)."""
+        x_scaled = x_NC if self.readout_width_mult is None else x_NC / self.readout_width_mult
+        logits = rearrange(self.out_x_proj(x_scaled), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
+        if self.copy_head is None:
+            return logits
+        if sources_NK is None:
+            raise ValueError("this model copies from the previous frame (copy_radius is set): pass copy_sources")
+        return self.copy_head(logits, x_NC, sources_NK)
 
     def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
                latent_actions: Optional[torch.Tensor] = None,
@@ -151,8 +175,9 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
 
     def logits_unchecked(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None) -> torch.Tensor:
         """`logits` without input checks, with precomputed action embeddings (B, T, C) or None."""
-        return rearrange(self.readout(self.hidden_states(x_BTHW, cond_BTC)), "B T (H W) V F -> B V F T H W",
-                         H=self.config.H)
+        sources_BTSK = self.copy_sources(previous_frames(x_BTHW, self.mask_token_id))
+        return rearrange(self.readout(self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK), sources_BTSK),
+                         "B T (H W) V F -> B V F T H W", H=self.config.H)
 
     def forward(self, batch: MaskGITBatch, recipe: Optional[TrainingRecipe] = None) -> objectives.LossOutput:
         """The training loss of a collated batch (genie/objectives.py): factored CE and accuracy over the tokens

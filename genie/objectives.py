@@ -12,6 +12,7 @@ import torch
 from einops import rearrange
 
 from genie.config import TrainingRecipe
+from genie.copy_head import previous_frames
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import context_cache
 from genie.masking import MaskGITBatch
@@ -45,10 +46,11 @@ def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0) -> L
     cond_BTC = model.action_embeds(B, T, batch.actions, batch.latent_actions)
     if model.training and self_reveal_ratio > 0:
         x_BTHW = reveal_own_predictions(model, x_BTHW, cond_BTC, self_reveal_ratio)
-    x_BTSC = model.hidden_states(x_BTHW, cond_BTC)
+    sources_BTSK = model.copy_sources(previous_frames(x_BTHW, model.mask_token_id))
+    x_BTSC = model.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
     relevant_BTS = rearrange(x_BTHW == model.mask_token_id, "B T H W -> B T (H W)")
     relevant_BTS[:, 0] = False  # frame 0 is always given
-    return loss_at(model, x_BTSC, relevant_BTS, rearrange(labels_BTHW, "B T H W -> B T (H W)"))
+    return loss_at(model, x_BTSC, relevant_BTS, rearrange(labels_BTHW, "B T H W -> B T (H W)"), sources_BTSK)
 
 
 @torch.no_grad()
@@ -68,9 +70,12 @@ def reveal_own_predictions(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch
     x_bTHW = x_BTHW[chosen_B]  # a copy
     masked_bTHW = x_bTHW == model.mask_token_id
     masked_bTHW[:, 0] = False
-    hidden_NC = model.hidden_states(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B])[
-        rearrange(masked_bTHW, "b T H W -> b T (H W)")]
-    logits_1VFN = rearrange(model.readout(hidden_NC), "N V F -> 1 V F N")
+    masked_bTS = rearrange(masked_bTHW, "b T H W -> b T (H W)")
+    sources_bTSK = model.copy_sources(previous_frames(x_bTHW, model.mask_token_id))
+    hidden_NC = model.hidden_states(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B],
+                                    sources_BTSK=sources_bTSK)[masked_bTS]
+    logits_1VFN = rearrange(model.readout(hidden_NC, None if sources_bTSK is None else sources_bTSK[masked_bTS]),
+                            "N V F -> 1 V F N")
     guesses_N = sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]  # greedy, as the sampler picks
     share_bT11 = 1 - cosine_schedule(torch.rand(*masked_bTHW.shape[:2], 1, 1, device=x_BTHW.device))
     reveal_bTHW = masked_bTHW & (torch.rand(masked_bTHW.shape, device=x_BTHW.device) < share_bT11)
@@ -97,15 +102,19 @@ def two_stream_loss(model, batch: MaskGITBatch) -> LossOutput:
     B, T = context_BTHW.shape[:2]
     cond_BTC = model.action_embeds(B, T, batch.actions, batch.latent_actions)
     kv_cache = context_cache(model, context_BTHW, cond_BTC)
+    sources_BTSK = model.copy_sources(context_BTHW[:, :-1])
     x_BTSC = model.hidden_states(targets_BTHW[:, 1:], None if cond_BTC is None else cond_BTC[:, 1:], 1,
-                                 TemporalMode.TARGETS, kv_cache)
+                                 TemporalMode.TARGETS, kv_cache, sources_BTSK)
     relevant_BTS = rearrange(targets_BTHW[:, 1:] == model.mask_token_id, "B T H W -> B T (H W)")
-    return loss_at(model, x_BTSC, relevant_BTS, rearrange(batch.labels[:, 1:], "B T H W -> B T (H W)"))
+    return loss_at(model, x_BTSC, relevant_BTS, rearrange(batch.labels[:, 1:], "B T H W -> B T (H W)"),
+                   sources_BTSK)
 
 
-def loss_at(model, x_BTSC: torch.Tensor, relevant_BTS: torch.Tensor, labels_BTS: torch.Tensor) -> LossOutput:
-    """Read out the hidden states (B, T, S, C) where relevant (B, T, S) only -> factored CE and acc there."""
-    factored_NVF = model.readout(x_BTSC[relevant_BTS])
+def loss_at(model, x_BTSC: torch.Tensor, relevant_BTS: torch.Tensor, labels_BTS: torch.Tensor,
+            sources_BTSK: Optional[torch.Tensor] = None) -> LossOutput:
+    """Read out the hidden states (B, T, S, C) where relevant (B, T, S) only -> factored CE and acc there.
+    sources_BTSK: the copy head's sources of every position (`STMaskGIT.copy_sources`), None without one."""
+    factored_NVF = model.readout(x_BTSC[relevant_BTS], None if sources_BTSK is None else sources_BTSK[relevant_BTS])
     targets_N = labels_BTS[relevant_BTS]
     num_relevant = max(targets_N.numel(), 1)
     loss = factored_cross_entropy(factored_NVF, targets_N).sum() / num_relevant

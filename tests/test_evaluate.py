@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader
 
 from common.images import psnr
 from data import RawTokenDataset, read_metadata, write_token_dataset
-from evaluate import FrameScorer, evaluate, main, rollout_result, score_rollout
+from evaluate import FrameScorer, evaluate, example_indices, main, rollout_result, score_rollout
 from genie import GenieConfig, STMaskGIT
 from genie.metrics import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
                            token_accuracy)
@@ -22,7 +22,7 @@ from genie.inference import teacher_forced
 
 REPO = Path(__file__).resolve().parents[1]
 VOCAB = 64 ** 2
-JSON_KEYS = {"loss", "acc", "pred_lpips", "gen_time", "dec_time", "num_examples"}
+JSON_KEYS = {"loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time", "num_examples"}
 ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold")
                        for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
 ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
@@ -166,8 +166,36 @@ def test_json_line_metrics_and_saved_outputs(tiny, capsys):
     assert np.array_equal(video[:, 8:], windows[:, 1:].numpy())
     assert (video[:, 1:8] < VOCAB).all()
     assert result["acc"] == pytest.approx((video[:, 1:8] == video[:, 8:]).mean())
+    # copy_acc: copying ground-truth frame t-1, on the same windows
+    assert result["copy_acc"] == pytest.approx((windows[:, :-1] == windows[:, 1:]).double().mean().item())
     assert RawTokenDataset(out_dir, window_size=15, stride=1, filter_overlaps=True).valid_start_inds.tolist() == \
         [15 * i for i in range(5)]
+
+
+def test_spread_examples_cover_the_dataset_evenly(tiny, capsys):
+    assert example_indices(10, None, True) == list(range(10))
+    assert example_indices(10, 4, False) == [0, 1, 2, 3]
+    assert example_indices(10, 4, True) == [0, 2, 5, 7]
+    assert example_indices(10, 12, True) == list(range(10))
+    # a video where each token stays put with a probability that grows along the video: copy_acc depends on
+    # which windows are taken
+    rng = np.random.default_rng(1)
+    video = rng.integers(0, VOCAB, size=(120, 4, 4))
+    for t in range(1, 120):
+        stay = rng.random((4, 4)) < t / 120
+        video[t][stay] = video[t - 1][stay]
+    data = tiny.root / "drifting"
+    write_token_dataset(data, video, segment_ids=np.zeros(120, dtype=np.int64), metadata={"vocab_size": VOCAB})
+    dataset = RawTokenDataset(data, window_size=8, stride=3, filter_overlaps=True)
+    copy_accs = []
+    for spread in ([], ["--spread_examples"]):
+        assert main(eval_args(data, tiny.ckpt, "--skip_lpips", "--max_examples", "3", *spread)) == 0
+        result = last_json_line(capsys.readouterr().out)
+        windows = torch.stack([dataset[i]["tokens"] for i in example_indices(len(dataset), 3, bool(spread))])
+        assert result["num_examples"] == 3
+        assert result["copy_acc"] == pytest.approx((windows[:, :-1] == windows[:, 1:]).double().mean().item())
+        copy_accs.append(result["copy_acc"])
+    assert copy_accs[1] > copy_accs[0] + 0.1  # the spread windows reach the later, stiller part of the video
 
 
 class StubScorer:

@@ -212,12 +212,27 @@ def test_loss_is_factored_ce_over_masked_tokens_of_later_frames():
     assert model.pos_embed_TSC.grad is not None
 
 
-@pytest.mark.parametrize("uses_actions", [False, True])
-def test_masked_only_readout_gives_same_loss_acc_and_gradients(uses_actions):
+VARIANTS = {"plain": {}, "actions": dict(num_latent_actions=3, action_dropout=0.0), "copy": dict(copy_radius=1),
+            "copy_match": dict(copy_radius=1, copy_match_input=True)}
+
+
+def variant_model(variant: str) -> STMaskGIT:
+    model = sharp_readout_model(tiny_config(**VARIANTS[variant]))
+    if model.copy_head is not None:  # scores that differ between neighbours, so that a wrong source shows
+        with torch.no_grad():
+            model.copy_head.score_proj.weight.normal_(0, 1.0)
+            if model.copy_head.match_proj is not None:
+                model.copy_head.match_proj.weight.normal_(0, 1.0)
+    return model
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_masked_only_readout_gives_same_loss_acc_and_gradients(variant):
     """The training loss reads out only the counted tokens: same loss, acc and gradients as from every token's
     logits (genie.reference.full_logits_loss)."""
-    extra = dict(num_latent_actions=3, action_dropout=0.0) if uses_actions else {}
-    config = tiny_config(**extra)
+    uses_actions = variant == "actions"
+    model = variant_model(variant)
+    config = model.config
     model = sharp_readout_model(config)
     labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
     g = torch.Generator().manual_seed(5)
@@ -243,13 +258,13 @@ def test_masked_only_readout_gives_same_loss_acc_and_gradients(uses_actions):
         torch.testing.assert_close(grads[1][name], grads[0][name], atol=1e-6, rtol=1e-5)
 
 
-@pytest.mark.parametrize("uses_actions", [False, True])
-def test_two_stream_loss_equals_one_full_pass_per_target(uses_actions):
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_two_stream_loss_equals_one_full_pass_per_target(variant):
     """target_ids: every frame t >= 1 predicted from clean frames < t in one pass; the reference runs the whole
     window once per target (frame t = its masked version, later frames masked) through model.logits."""
-    extra = dict(num_latent_actions=3, action_dropout=0.0) if uses_actions else {}
-    config = tiny_config(**extra)
-    model = sharp_readout_model(config)
+    uses_actions = variant == "actions"
+    model = variant_model(variant)
+    config = model.config
     labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
     g = torch.Generator().manual_seed(7)
     masked = torch.rand(labels.shape, generator=g) < 0.6
@@ -317,9 +332,10 @@ def test_two_stream_rejects_masked_context_and_mismatched_targets():
         two_stream_loss(model, MaskGITBatch(labels, labels, target_ids=labels[:, :-1]))
 
 
-def test_self_reveal_fills_masked_tokens_with_the_models_greedy_guesses():
-    config = tiny_config(T=4)
-    model = sharp_readout_model(config)
+@pytest.mark.parametrize("variant", ["plain", "copy", "copy_match"])
+def test_self_reveal_fills_masked_tokens_with_the_models_greedy_guesses(variant):
+    model = variant_model(variant)
+    config = model.config
     x = random_tokens(config, B=3, T=4, mask_rate=0.7)
     torch.manual_seed(0)
     revealed = reveal_own_predictions(model, x, None, ratio=1.0)

@@ -34,11 +34,13 @@ def test_main_job_pipeline_tiny(tmp_path):
 
     config = tmp_path / "genie.json"
     config.write_text(json.dumps({"num_layers": 1, "num_heads": 2, "d_model": 32, "T": 16, "S": 256,
-                                  "image_vocab_size": 262144, "num_prompt_frames": 8}))
+                                  "image_vocab_size": 262144, "num_prompt_frames": 8, "copy_radius": 1,
+                                  "copy_match_input": True}))
     out = tmp_path / "model"
     env = dict(os.environ, SAMPLE_DIR=str(sample), OUT=str(out), GENIE_CONFIG=str(config),
                EVAL_ARGS="--max_examples 1", LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", NUM_EXAMPLES="1",
-               ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8")
+               ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
+               UNSEEN_DIR=str(sample))  # stands in for a set of unseen maps: its val split is another map
     subprocess.run(["bash", str(REPO / "run_sample.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     assert (out / "final_checkpt" / "model.safetensors").exists()
@@ -54,3 +56,6 @@ def test_main_job_pipeline_tiny(tmp_path):
     assert (rollout["protocol"], rollout["num_prompt_frames"], rollout["num_examples"]) == ("rollout", 8, 1)
     assert len(rollout["rollout_psnr"]) == len(rollout["hold_ssim"]) == 16 - 8
     assert rollout["rollout_far_psnr"] == rollout["rollout_psnr"][-1] and rollout["rollout_lpips"] is None
+    unseen = json.loads((out / "metrics_unseen.json").read_text())
+    assert unseen["num_examples"] == 1 and unseen["copy_acc"] == metrics["copy_acc"]  # same val split here
+    assert json.loads((out / "metrics_rollout_unseen.json").read_text())["protocol"] == "rollout"

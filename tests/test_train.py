@@ -245,6 +245,16 @@ def test_warmstart_loads_weights_and_rejects_other_shapes(tiny_data, tmp_path):
                           "--warmstart_path", str(tmp_path / "source")))
     assert_same_weights(load_weights(tmp_path / "source"), load_weights(tmp_path / "run" / "final_checkpt"))
 
+    # a copy head (or action inputs) the source lacks starts fresh on top of the source's weights
+    copy_config = write_config(tmp_path / "copy.json", copy_radius=1, copy_match_input=True)
+    train.main(train_argv({**tiny_data, "config": copy_config}, tmp_path / "copy_run", "--max_train_steps", "0",
+                          "--warmstart_path", str(tmp_path / "source")))
+    copy_weights = load_weights(tmp_path / "copy_run" / "final_checkpt")
+    assert {k for k in copy_weights if k.startswith("copy_head.")} == {
+        "copy_head.score_proj.weight", "copy_head.score_proj.bias", "copy_head.match_proj.weight"}
+    assert_same_weights(load_weights(tmp_path / "source"),
+                        {k: v for k, v in copy_weights.items() if not k.startswith("copy_head.")})
+
     wide = STMaskGIT(GenieConfig(**{**TINY, "d_model": 64}))
     wide.save_pretrained(tmp_path / "wide")
     with pytest.raises(SystemExit, match=r"--warmstart_path .*wide.*shape mismatches"):

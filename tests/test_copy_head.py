@@ -1,0 +1,198 @@
+"""The opt-in previous-frame pointer (genie/copy_head.py): its mixture, its sources, and the model paths using it."""
+import json
+
+import pytest
+import torch
+
+from common.config import ConfigError
+from genie import GenieConfig, STMaskGIT
+from genie.copy_head import CopyHead, previous_frames
+from genie.factorization import factorize_token_ids
+from genie.inference import generate, teacher_forced
+from genie.reference import generate_uncached, teacher_forced_uncached
+
+V, F_ = 64, 2
+MASK = V ** F_
+
+
+def tiny_copy_model(radius=1, seed=0, T=6, match=False) -> STMaskGIT:
+    torch.manual_seed(seed)
+    config = GenieConfig(num_layers=2, num_heads=4, d_model=32, T=T, S=16, image_vocab_size=V ** F_,
+                         num_prompt_frames=2, qk_norm=True, copy_radius=radius, copy_match_input=match)
+    model = STMaskGIT(config)
+    model.init_weights()
+    with torch.no_grad():  # logits and copy scores that differ clearly between tokens and neighbours
+        model.out_x_proj.weight.normal_(0, 1.0)
+        model.copy_head.score_proj.weight.normal_(0, 1.0)
+        model.pos_embed_TSC.normal_(0, 1.0)
+        if match:
+            model.copy_head.match_proj.weight.normal_(0, 1.0)
+    return model.eval()
+
+
+def test_mixture_matches_a_hand_computation():
+    torch.manual_seed(0)
+    head = CopyHead(d_model=8, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
+    N, K = 5, 9
+    logits, hidden = torch.randn(N, V, F_) * 3, torch.randn(N, 8)
+    sources = torch.randint(0, MASK, (N, K))
+    sources[0, :4] = MASK  # not offered
+    sources[1] = MASK  # nothing offered: the readout alone
+    sources[2, 3] = sources[2, 5]  # two neighbours with the same token add up
+    out = head(logits, hidden, sources)
+
+    scores = head.score_proj(hidden).detach()
+    for n in range(N):
+        offered = [k for k in range(K) if sources[n, k] != MASK]
+        w = torch.softmax(torch.cat([scores[n, offered], scores[n, K:]]), dim=0)
+        factors = factorize_token_ids(sources[n], F_, V)
+        for f in range(F_):
+            p = w[-1] * torch.softmax(logits[n, :, f], dim=0)
+            for i, k in enumerate(offered):
+                p[factors[k, f]] += w[i]
+            torch.testing.assert_close(out[n, :, f].exp(), p, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(out[1], logits.log_softmax(dim=1)[1])
+    assert torch.isfinite(out).all()
+
+
+def test_gradients_are_finite_where_copy_mass_underflows():
+    head = CopyHead(d_model=4, radius=0, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
+    with torch.no_grad():
+        head.score_proj.bias.copy_(torch.tensor([200.0, 0.0]))  # all weight on the copy: the readout underflows
+    logits = torch.randn(3, V, F_, requires_grad=True)
+    out = head(logits, torch.zeros(3, 4), torch.randint(0, MASK, (3, 1)))
+    out.logsumexp(dim=1).sum().backward()
+    assert torch.isfinite(logits.grad).all() and torch.isfinite(head.score_proj.weight.grad).all()
+
+
+def test_sources_are_row_major_offsets_with_unknown_outside_the_frame():
+    head = CopyHead(d_model=4, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
+    prev = torch.arange(16).view(1, 1, 4, 4)
+    src = head.sources(prev)  # (1, 1, 16, 9)
+    assert src.shape == (1, 1, 16, 9)
+    assert src[0, 0, 5].tolist() == [0, 1, 2, 4, 5, 6, 8, 9, 10]  # position (1, 1): its 3x3 neighbourhood
+    assert src[0, 0, 0].tolist() == [MASK] * 4 + [0, 1, MASK, 4, 5]  # (0, 0): the top-left corner
+    x = torch.arange(2 * 3 * 16).view(2, 3, 4, 4)
+    before = previous_frames(x, MASK)
+    assert (before[:, 0] == MASK).all() and torch.equal(before[:, 1:], x[:, :2])
+    assert torch.equal(previous_frames(x, MASK, x[:, 2])[:, 0], x[:, 2])
+
+
+@pytest.mark.parametrize("dy, dx", [(0, 0), (0, 1), (1, -1)])
+def test_a_pointer_fixed_on_one_offset_generates_the_shifted_previous_frame(dy, dx):
+    """All score on neighbour (dy, dx): each generated frame copies the previous one shifted by that offset; where
+    the neighbour lies outside the frame the readout decides. Cached and uncached generation agree."""
+    model = tiny_copy_model(radius=1)
+    k = (dy + 1) * 3 + (dx + 1)
+    with torch.no_grad():
+        model.copy_head.score_proj.weight.zero_()
+        model.copy_head.score_proj.bias.fill_(-50.0)
+        model.copy_head.score_proj.bias[k] = 50.0
+    prompt = torch.randint(0, MASK, (2, 2, 4, 4), generator=torch.Generator().manual_seed(1))
+    out, _ = generate(model, prompt, 3, maskgit_steps=2)
+    ref, _ = generate_uncached(model, prompt, 3, maskgit_steps=2)
+    assert torch.equal(out, ref)
+    for t in range(2, 5):
+        for y in range(4):
+            for x in range(4):
+                if 0 <= y + dy < 4 and 0 <= x + dx < 4:
+                    assert out[0, t, y, x] == out[0, t - 1, y + dy, x + dx]
+
+
+@pytest.mark.parametrize("match", [False, True])
+@pytest.mark.parametrize("maskgit_steps", [1, 2, 3])
+def test_cached_inference_equals_recomputation_with_a_copy_head(maskgit_steps, match):
+    model = tiny_copy_model(radius=1, match=match)
+    x = torch.randint(0, MASK, (2, 6, 4, 4), generator=torch.Generator().manual_seed(2))
+    x[:, 3] = x[:, 2].roll(1, dims=2)  # a shifted frame, so copies matter
+    for fns in ((teacher_forced, teacher_forced_uncached), (generate, generate_uncached)):
+        runs = []
+        for fn in fns:
+            args = (model, x) if fn in (teacher_forced, teacher_forced_uncached) else (model, x[:, :2], 4)
+            runs.append(fn(*args, maskgit_steps=maskgit_steps, temperature=1.0,
+                           generator=torch.Generator().manual_seed(3)))
+        (cached_samples, cached_logits), (full_samples, full_logits) = runs
+        torch.testing.assert_close(cached_logits, full_logits, atol=1e-5, rtol=1e-5)
+        assert torch.equal(cached_samples, full_samples)
+
+
+def test_logits_are_log_probabilities_and_frame_0_uses_the_readout_alone():
+    model = tiny_copy_model(radius=2)
+    x = torch.randint(0, MASK, (1, 3, 4, 4))
+    with torch.no_grad():
+        logp = model.logits(x)
+        hidden = model.hidden_states(x)
+        plain = model.out_x_proj(hidden).view(1, 3, 16, F_, V)
+    torch.testing.assert_close(logp.exp().sum(dim=1), torch.ones(1, F_, 3, 4, 4))
+    frame0 = logp[0, :, :, 0].permute(2, 3, 0, 1).reshape(16, V, F_)  # (S, V, F)
+    torch.testing.assert_close(frame0, plain[0, 0].transpose(1, 2).log_softmax(dim=1), atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(logp[0, :, :, 1].exp().amax(dim=0), frame0.exp().amax(dim=1).T.reshape(F_, 4, 4))
+
+
+def test_config_validation_and_checkpoint_round_trip(tmp_path):
+    for bad in (-1, 4, 7):
+        with pytest.raises(ConfigError, match="copy_radius"):
+            GenieConfig(S=16, image_vocab_size=V ** F_, num_layers=1, d_model=16, num_heads=2, copy_radius=bad)
+    assert "copy_head.score_proj.weight" not in STMaskGIT(GenieConfig(num_layers=1)).state_dict()  # published
+    model = tiny_copy_model(radius=2)
+    assert model.copy_head.score_proj.weight.shape == (26, 32)
+    model.save_pretrained(tmp_path / "ckpt")
+    assert json.loads((tmp_path / "ckpt" / "config.json").read_text())["copy_radius"] == 2
+    loaded = STMaskGIT.from_pretrained(tmp_path / "ckpt")
+    x = torch.randint(0, MASK, (1, 4, 4, 4))
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.logits(x), model.logits(x))
+    with pytest.raises(ValueError, match="copy_sources"):
+        model.readout(torch.zeros(3, 32))
+
+
+def dense_mixture(head: CopyHead, logits, hidden, sources):
+    """The mixture written directly in probability space over every value (the slow, obvious way)."""
+    offered = sources != MASK
+    scores = head.score_proj(hidden).masked_fill(torch.nn.functional.pad(~offered, (0, 1)), float("-inf"))
+    w = scores.softmax(dim=-1)
+    factors = factorize_token_ids(sources.masked_fill(~offered, 0), F_, V)  # (N, K, F)
+    onehot = torch.nn.functional.one_hot(factors, V).float()  # (N, K, F, V)
+    copy = (w[:, :-1, None, None] * onehot).sum(dim=1).transpose(1, 2)  # (N, V, F)
+    return (w[:, -1, None, None] * logits.softmax(dim=1) + copy).log()
+
+
+def test_gradients_match_the_dense_mixture_with_repeated_and_dropped_neighbours():
+    torch.manual_seed(1)
+    head = CopyHead(d_model=8, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
+    N = 6
+    sources = torch.randint(0, 4, (N, 9)) * 17  # few distinct values: many repeats, in both factors
+    sources[0, :3] = MASK
+    sources[1, 5] = 0  # value 0 held by a neighbour while dropped ones also point at it
+    sources[1, 6] = MASK
+    grads = []
+    for fn in (head, lambda *a: dense_mixture(head, *a)):
+        logits = (torch.randn(N, V, F_, generator=torch.Generator().manual_seed(2)) * 2).requires_grad_()
+        hidden = torch.randn(N, 8, generator=torch.Generator().manual_seed(3)).requires_grad_()
+        head.zero_grad()
+        out = fn(logits, hidden, sources)
+        weights = torch.rand(out.shape, generator=torch.Generator().manual_seed(4))
+        (out * weights).sum().backward()
+        grads.append((out.detach(), logits.grad, hidden.grad, head.score_proj.weight.grad.clone()))
+    for fast, slow in zip(*grads):
+        torch.testing.assert_close(fast, slow, atol=1e-5, rtol=1e-4)
+
+
+def test_match_input_marks_the_neighbours_holding_the_same_token():
+    head = CopyHead(d_model=4, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK,
+                    match_input=True)
+    frames = torch.randint(0, 1000, (1, 3, 4, 4))
+    frames[0, 1] = frames[0, 0].roll(1, dims=1)  # frame 1 = frame 0 shifted one column right
+    frames[0, 2, 0, 0] = MASK
+    sources = head.sources(previous_frames(frames, MASK))
+    match = (sources == frames.flatten(2).unsqueeze(-1)) & (frames.flatten(2).unsqueeze(-1) != MASK)
+    assert not match[0, 0].any()  # frame 0: no previous frame
+    holds = match[0, 1, :, 3].view(4, 4)  # offset (0, -1) holds every token of frame 1 but the first column's
+    assert holds[:, 1:].all() and not holds[:, 0].any()
+    with torch.no_grad():
+        head.match_proj.weight.copy_(torch.arange(9.0).expand(4, 9))  # channel value = sum of matched offsets
+        emb = head.match_embedding(frames, sources)
+    torch.testing.assert_close(emb[..., 0], (match.float() * torch.arange(9.0)).sum(-1))
+    assert emb[0, 2, 0].abs().sum() == 0  # a masked token gets no match
+    with pytest.raises(ConfigError, match="copy_match_input"):
+        GenieConfig(num_layers=1, copy_match_input=True)
