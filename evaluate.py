@@ -201,13 +201,16 @@ def batch_actions(model: STMaskGIT, batch: dict, device: torch.device, args: arg
             None if latent_BT is None else latent_BT.to(device))
 
 
+TEACHER_FORCED_KEYS = ("loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time")
+
+
 def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
              scorer: Optional[FrameScorer] = None, outputs: Optional[list] = None) -> dict:
     """Run the teacher-forced protocol over `loader`; return the metrics dict (the JSON line's content).
 
     outputs: when a list, per-window frames (prompt | predictions | ground truth) are appended to it as numpy.
     """
-    metrics = {name: RunningMean() for name in ("loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time")}
+    metrics = {name: RunningMean() for name in TEACHER_FORCED_KEYS}
     generator = torch.Generator(device=device).manual_seed(args.seed)
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
@@ -238,7 +241,7 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
         num_examples += B
         progress.set_postfix({name: f"{m.mean:.4g}" for name, m in metrics.items() if m.mean is not None})
 
-    result = {name: metrics[name].mean for name in ("loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time")}
+    result = {name: metrics[name].mean for name in TEACHER_FORCED_KEYS}
     result["num_examples"] = num_examples
     return result
 

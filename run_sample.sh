@@ -29,22 +29,26 @@ VAL=$SAMPLE_DIR/val
   --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --example_stride "${EXAMPLE_STRIDE:-2500}" --maskgit_steps 2 --temperature 0
 "$PY" visualize.py --token_dir "$OUT/generated" --output_dir "$OUT" --fps 4
 
+# evaluate_tf DIR / evaluate_rollout DIR: the two protocols on a token dataset, with the env's extra flags
+evaluate_tf() {
+  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$1" --skip_lpips ${EVAL_ARGS:-}
+}
+evaluate_rollout() {
+  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$1" --protocol rollout \
+    ${ROLLOUT_EVAL_ARGS:---max_examples 48 --spread_examples --num_prompt_frames 8}
+}
 # CE and accuracy on every validation window; LPIPS (decodes every frame, slow on CPU) on the first 60.
-"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --skip_lpips ${EVAL_ARGS:-} \
-  | tee "$OUT/eval.log"
+evaluate_tf "$VAL" | tee "$OUT/eval.log"
 "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" ${LPIPS_EVAL_ARGS:---max_examples 60} \
   | tee "$OUT/eval_lpips.log"
 "$PY" -m genie.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" | tee "$OUT/baselines.log"
 # The 1X sampling challenge's form: 8 prompt frames, the other 8 generated free-running, PSNR / SSIM / LPIPS per
 # horizon against holding the last prompt frame.
-"$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --protocol rollout \
-  ${ROLLOUT_EVAL_ARGS:---max_examples 48 --spread_examples --num_prompt_frames 8} | tee "$OUT/eval_rollout.log"
+evaluate_rollout "$VAL" | tee "$OUT/eval_rollout.log"
 UNSEEN_DIR=${UNSEEN_DIR:-data/unseen}
 if [ -f "$UNSEEN_DIR/val/metadata.json" ]; then
-  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$UNSEEN_DIR/val" --skip_lpips ${EVAL_ARGS:-} \
-    | tee "$OUT/eval_unseen.log"
-  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$UNSEEN_DIR/val" --protocol rollout \
-    ${ROLLOUT_EVAL_ARGS:---max_examples 48 --spread_examples --num_prompt_frames 8} | tee "$OUT/eval_rollout_unseen.log"
+  evaluate_tf "$UNSEEN_DIR/val" | tee "$OUT/eval_unseen.log"
+  evaluate_rollout "$UNSEEN_DIR/val" | tee "$OUT/eval_rollout_unseen.log"
   tail -n 1 "$OUT/eval_unseen.log" > "$OUT/metrics_unseen.json"
   tail -n 1 "$OUT/eval_rollout_unseen.log" > "$OUT/metrics_rollout_unseen.json"
 fi

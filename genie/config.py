@@ -81,8 +81,8 @@ class GenieConfig:
         if not 1 <= self.num_prompt_frames < self.T:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         self._check_actions()
-        if self.copy_radius is not None and not 0 <= self.copy_radius < math.isqrt(self.S):
-            raise ConfigError(f"GenieConfig: copy_radius must be None (off) or in [0, {math.isqrt(self.S)}), "
+        if self.copy_radius is not None and not 0 <= self.copy_radius < self.H:
+            raise ConfigError(f"GenieConfig: copy_radius must be None (off) or in [0, {self.H}), "
                               f"got {self.copy_radius}")
         if self.copy_match_input and self.copy_radius is None:
             raise ConfigError("GenieConfig: copy_match_input needs copy_radius (the neighbours it compares)")

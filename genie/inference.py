@@ -33,7 +33,7 @@ def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: Temporal
     Returns factored logits (B, V, F, T, H, W), or None in PREFILL mode.
     Inputs are not checked (ids the sampler produced: no device sync per step); `check_frames` does that.
     """
-    sources_BTSK = model.copy_sources(_frames_before(model, x_BTHW, first_frame, mode, kv_cache))
+    sources_BTSK = _copy_sources(model, x_BTHW, first_frame, mode, kv_cache)
     x_BTSC = model.hidden_states(x_BTHW, cond_BTC, first_frame, mode, kv_cache, sources_BTSK)
     kv_cache.commit(commit, x_BTHW)
     if x_BTSC is None:
@@ -41,15 +41,16 @@ def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: Temporal
     return rearrange(model.readout(x_BTSC, sources_BTSK), "B T (H W) V F -> B V F T H W", H=model.config.H)
 
 
-def _frames_before(model, x_BTHW: torch.Tensor, first_frame: int, mode: TemporalMode,
-                   kv_cache: TemporalKVCache) -> Optional[torch.Tensor]:
-    """The frame before each of run_frames' frames (B, T, H, W), for the copy head; None without one."""
-    if model.copy_head is None:
+def _copy_sources(model, x_BTHW: torch.Tensor, first_frame: int, mode: TemporalMode,
+                  kv_cache: TemporalKVCache) -> Optional[torch.Tensor]:
+    """The copy head's sources (B, T, S, K) of run_frames' frames, from the frame before each; None without a copy
+    head or when nothing reads them (a PREFILL pass has no readout, so only the match input needs them)."""
+    if model.copy_head is None or (mode is TemporalMode.PREFILL and not model.config.copy_match_input):
         return None
     if mode is TemporalMode.TARGETS:  # target first_frame + i follows cached frame first_frame + i - 1
-        return kv_cache.frames(first_frame - 1, first_frame - 1 + x_BTHW.shape[1])
+        return model.copy_sources(kv_cache.frames(first_frame - 1, first_frame - 1 + x_BTHW.shape[1]))
     before = kv_cache.frames(first_frame - 1, first_frame)[:, 0] if first_frame > 0 else None
-    return previous_frames(x_BTHW, model.mask_token_id, before)
+    return model.copy_sources(previous_frames(x_BTHW, model.mask_token_id, before))
 
 
 def check_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: TemporalKVCache, mode: TemporalMode,

@@ -149,6 +149,10 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         may copy at each position (B, T, S, K); None for a model without one (the published layout)."""
         return None if self.copy_head is None else self.copy_head.sources(prev_BTHW)
 
+    def window_copy_sources(self, x_BTHW: torch.Tensor) -> Optional[torch.Tensor]:
+        """`copy_sources` of a window's own frames (B, T, H, W), frame 0 with no frame before it."""
+        return None if self.copy_head is None else self.copy_sources(previous_frames(x_BTHW, self.mask_token_id))
+
     def readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Hidden states (..., C) -> factored logits (..., V, F).
 
@@ -175,7 +179,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
 
     def logits_unchecked(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None) -> torch.Tensor:
         """`logits` without input checks, with precomputed action embeddings (B, T, C) or None."""
-        sources_BTSK = self.copy_sources(previous_frames(x_BTHW, self.mask_token_id))
+        sources_BTSK = self.window_copy_sources(x_BTHW)
         return rearrange(self.readout(self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK), sources_BTSK),
                          "B T (H W) V F -> B V F T H W", H=self.config.H)
 

@@ -12,7 +12,6 @@ import torch
 from einops import rearrange
 
 from genie.config import TrainingRecipe
-from genie.copy_head import previous_frames
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import context_cache
 from genie.masking import MaskGITBatch
@@ -46,7 +45,7 @@ def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0) -> L
     cond_BTC = model.action_embeds(B, T, batch.actions, batch.latent_actions)
     if model.training and self_reveal_ratio > 0:
         x_BTHW = reveal_own_predictions(model, x_BTHW, cond_BTC, self_reveal_ratio)
-    sources_BTSK = model.copy_sources(previous_frames(x_BTHW, model.mask_token_id))
+    sources_BTSK = model.window_copy_sources(x_BTHW)
     x_BTSC = model.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
     relevant_BTS = rearrange(x_BTHW == model.mask_token_id, "B T H W -> B T (H W)")
     relevant_BTS[:, 0] = False  # frame 0 is always given
@@ -71,7 +70,7 @@ def reveal_own_predictions(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch
     masked_bTHW = x_bTHW == model.mask_token_id
     masked_bTHW[:, 0] = False
     masked_bTS = rearrange(masked_bTHW, "b T H W -> b T (H W)")
-    sources_bTSK = model.copy_sources(previous_frames(x_bTHW, model.mask_token_id))
+    sources_bTSK = model.window_copy_sources(x_bTHW)
     hidden_NC = model.hidden_states(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B],
                                     sources_BTSK=sources_bTSK)[masked_bTS]
     logits_1VFN = rearrange(model.readout(hidden_NC, None if sources_bTSK is None else sources_bTSK[masked_bTS]),
