@@ -3,6 +3,7 @@
     python benchmarks/bench_train.py --device cpu          # 8 layers, d_model 256, T 16, 16x16, batch 2, fp32, CPU
     python benchmarks/bench_train.py --mixed_precision compare  # fp32 vs CPU bf16 autocast (avx512_bf16 / AMX)
     python benchmarks/bench_train.py --readout compare          # logits of every token vs of the masked ones only
+    python benchmarks/bench_train.py --genie_config genie/configs/sample_world.json --profile   # the CPU default
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
 
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
@@ -28,6 +29,9 @@ PUBLISHED_TOKENS_PER_S = 1840.0
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description="Measure STMaskGIT training tokens/s.",
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--genie_config", default=None,
+                   help="Benchmark the model of this config JSON (e.g. genie/configs/sample_world.json, with its "
+                        "copy head) instead of the shape flags below (--batch_size still applies).")
     p.add_argument("--num_layers", type=int, default=8, help="Transformer blocks.")
     p.add_argument("--d_model", type=int, default=256, help="Model width.")
     p.add_argument("--num_heads", type=int, default=8, help="Attention heads.")
@@ -69,8 +73,11 @@ def make_step(model, optimizer, collate, windows, device, mixed_precision, full_
 
 
 def build(args, device):
-    config = GenieConfig(num_layers=args.num_layers, num_heads=args.num_heads, d_model=args.d_model, T=args.T,
-                         S=args.s ** 2, image_vocab_size=args.image_vocab_size)
+    if args.genie_config:
+        config = GenieConfig.from_pretrained(args.genie_config)
+    else:
+        config = GenieConfig(num_layers=args.num_layers, num_heads=args.num_heads, d_model=args.d_model, T=args.T,
+                             S=args.s ** 2, image_vocab_size=args.image_vocab_size)
     torch.manual_seed(0)
     model = STMaskGIT(config)
     model.init_weights()
@@ -116,8 +123,9 @@ def main(argv=None) -> None:
         raise SystemExit("bench_train.py: compare one thing at a time (--readout compare or --mixed_precision compare)")
     device = resolve_device(args.device)
     apply_num_threads(args.num_threads)
-    params = sum(p.numel() for p in build(args, device)[1].parameters())
-    print(f"STMaskGIT {args.num_layers} layers, d_model {args.d_model}, T {args.T}, {args.s}x{args.s}, "
+    config, model = build(args, device)[:2]
+    params = sum(p.numel() for p in model.parameters())
+    print(f"STMaskGIT {config.num_layers} layers, d_model {config.d_model}, T {config.T}, {config.H}x{config.W}, "
           f"{params / 1e6:.1f} M params, batch {args.batch_size}, {device.type}, threads {torch.get_num_threads()}")
     if args.readout == "compare":
         full = measure(args, device, args.mixed_precision, math_path=True, full_readout=True)

@@ -69,26 +69,32 @@ class CopyHead(nn.Module):
         factors_NFK = rearrange(factorize_token_ids(sources_NK.masked_fill(~offered_NK, 0), F_, V),
                                 "... K F -> ... F K")
         # (F, V) layout: the readout's own memory order, so the softmax runs over contiguous rows
-        log_new_NFV = (rearrange(logits_NVF, "... V F -> ... F V").float().log_softmax(dim=-1)
-                       + log_weights[..., -1, None, None])
-        # Only the <= K values some neighbour holds get copy mass; every other value keeps log_new. The mass of each
-        # neighbour's value (the weights of all neighbours holding it) comes from a dense scatter, gathered back.
-        # A dropped neighbour points at value 0 with weight 0, which leaves value 0's result unchanged.
-        copy_NFV = torch.zeros_like(log_new_NFV)
-        copy_NFV.scatter_add_(-1, factors_NFK, w_copy_NK.unsqueeze(-2).expand_as(factors_NFK).contiguous())
+        log_new_NFV = rearrange(logits_NVF, "... V F -> ... F V").float().log_softmax(dim=-1)
+        in_place = not torch.is_grad_enabled()  # inference: no autograd graph needs the intermediates kept
+        log_new_NFV = (log_new_NFV.add_ if in_place else log_new_NFV.add)(log_weights[..., -1, None, None])
+        # Only the <= K values some neighbour holds get copy mass; every other value keeps log_new. A dropped
+        # neighbour points at value 0 with weight 0, which leaves value 0's result unchanged.
+        mass_NFK, repeated_NFK = _mass_per_value(factors_NFK, w_copy_NK.unsqueeze(-2).expand_as(factors_NFK))
         # log(0) of a dropped neighbour's value is clamped: finite, and no gradient flows through the clamp
-        mixed_NFK = torch.logaddexp(log_new_NFV.gather(-1, factors_NFK),
-                                    copy_NFV.gather(-1, factors_NFK).clamp_min(1e-30).log())
-        # one writer per value, so that its gradient is counted once: each value slot records one of the neighbours
-        # holding it (whichever the scatter kept), and the others write to a spare column V instead
-        K = factors_NFK.shape[-1]
-        neighbour_NFK = torch.arange(K, device=factors_NFK.device).expand_as(factors_NFK)
-        owner_NFV = torch.empty(log_new_NFV.shape, dtype=factors_NFK.dtype, device=factors_NFK.device)
-        owner_NFV.scatter_(-1, factors_NFK, neighbour_NFK)  # only slots some neighbour holds are read back
-        repeated_NFK = owner_NFV.gather(-1, factors_NFK) != neighbour_NFK
-        out_NFV = F.pad(log_new_NFV, (0, 1))
-        out_NFV.scatter_(-1, factors_NFK.masked_fill(repeated_NFK, V), mixed_NFK)
-        return rearrange(out_NFV[..., :V], "... F V -> ... V F")
+        mixed_NFK = torch.logaddexp(log_new_NFV.gather(-1, factors_NFK), mass_NFK.clamp_min(1e-30).log())
+        if in_place:
+            return rearrange(log_new_NFV.scatter_(-1, factors_NFK, mixed_NFK), "... F V -> ... V F")
+        # Neighbours holding the same value write the same number into its slot; only one of them keeps its
+        # gradient, so that the value's gradient is counted once.
+        mixed_NFK = torch.where(repeated_NFK, mixed_NFK.detach(), mixed_NFK)
+        return rearrange(log_new_NFV.scatter(-1, factors_NFK, mixed_NFK), "... F V -> ... V F")
+
+
+def _mass_per_value(values_NK: torch.Tensor, weights_NK: torch.Tensor):
+    """For each entry of each row (..., K): the summed weight of the row's entries with the same value, and whether
+    the value already occurred at an earlier index of the row. Works on sorted rows, so nothing of the vocabulary's
+    size is allocated."""
+    sorted_NK, order_NK = values_NK.sort(dim=-1, stable=True)
+    repeat_sorted_NK = F.pad(sorted_NK[..., 1:] == sorted_NK[..., :-1], (1, 0), value=False)
+    group_NK = (~repeat_sorted_NK).cumsum(dim=-1) - 1  # runs of equal values, numbered from 0
+    totals_NK = torch.zeros_like(weights_NK).scatter_add(-1, group_NK, weights_NK.gather(-1, order_NK))
+    mass_NK = torch.empty_like(totals_NK).scatter(-1, order_NK, totals_NK.gather(-1, group_NK))
+    return mass_NK, torch.empty_like(repeat_sorted_NK).scatter(-1, order_NK, repeat_sorted_NK)
 
 
 def previous_frames(x_BTHW: torch.Tensor, mask_token_id: int,

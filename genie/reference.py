@@ -1,5 +1,7 @@
 """Reference computations without the KV cache or the masked readout: the straightforward (published) procedures
-that genie/inference.py and genie/objectives.py are tested against and benchmarks/bench_eval.py compares with.
+that genie/inference.py and genie/objectives.py are tested against and benchmarks/bench_eval.py compares with, and
+the copy head's mixture written out densely (genie/copy_head.py is tested against it, benchmarks/bench_copy_head.py
+compares their speed).
 
 Every MaskGIT step recomputes the whole window through `STMaskGIT.logits`, frames not yet known set to the mask
 token; the loss reads out the logits of every token.
@@ -7,8 +9,10 @@ token; the loss reads out the logits of every token.
 from typing import Optional, Tuple
 
 import torch
+import torch.nn.functional as F
 from einops import rearrange
 
+from genie.factorization import factorize_token_ids
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import check_teacher_forced, generation_inputs, sample_targets
 from genie.masking import MaskGITBatch
@@ -73,3 +77,17 @@ def teacher_forced_uncached(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2,
         return rearrange(torch.stack(per_target, dim=1), "B n V F H W -> (B n) V F H W")
 
     return sample_targets(model, logits_fn, B, T, x_BTHW, maskgit_steps, temperature, unmask_mode, generator)
+
+
+def dense_copy_mixture(head, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor,
+                       sources_NK: torch.Tensor) -> torch.Tensor:
+    """genie.copy_head.CopyHead.forward written directly in probability space over every value: a (N, K, F, V)
+    one-hot of the neighbours' factors weighted and summed, plus the readout's softmax. Same shapes and result."""
+    offered_NK = sources_NK != head.mask_token_id
+    scores = head.score_proj(hidden_NC).float().masked_fill(F.pad(~offered_NK, (0, 1)), float("-inf"))
+    w_NK1 = scores.softmax(dim=-1)
+    factors_NKF = factorize_token_ids(sources_NK.masked_fill(~offered_NK, 0), head.num_factored_vocabs,
+                                      head.factored_vocab_size)
+    onehot_NKFV = F.one_hot(factors_NKF, head.factored_vocab_size).float()
+    copy_NVF = rearrange((w_NK1[..., :-1, None, None] * onehot_NKFV).sum(dim=-3), "... F V -> ... V F")
+    return (w_NK1[..., -1, None, None] * logits_NVF.float().softmax(dim=-2) + copy_NVF).log()

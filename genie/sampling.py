@@ -29,13 +29,14 @@ def sample_factored_tokens(logits_BVFS: torch.Tensor, temperature: float = 0.0,
         raise ValueError(f"temperature must be >= 0, got {temperature}")
     logits_BSFV = rearrange(logits_BVFS.float(), "B V F S -> B S F V")
     B, S, F_, V = logits_BSFV.shape
-    probs_BSFV = logits_BSFV.softmax(dim=-1)
     if temperature <= GREEDY_TEMPERATURE:
         factors_BSF = logits_BSFV.argmax(dim=-1)
     else:
         tempered = (logits_BSFV / temperature).softmax(dim=-1).reshape(-1, V)
         factors_BSF = torch.multinomial(tempered, 1, generator=generator).view(B, S, F_)
-    confidence_BS = probs_BSFV.gather(-1, factors_BSF.unsqueeze(-1)).squeeze(-1).prod(dim=-1)
+    # softmax probability of the drawn factors, without materializing the whole softmax
+    log_probs_BSF = logits_BSFV.gather(-1, factors_BSF.unsqueeze(-1)).squeeze(-1) - logits_BSFV.logsumexp(dim=-1)
+    confidence_BS = log_probs_BSF.sum(dim=-1).exp()
     return unfactorize_token_ids(factors_BSF, F_, V), confidence_BS
 
 

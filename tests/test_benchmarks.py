@@ -1,5 +1,6 @@
 """The benchmark scripts still run (tiny shapes): they are how speed claims in the README are reproduced."""
 import importlib.util
+import json
 from pathlib import Path
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
@@ -30,3 +31,19 @@ def test_bench_train_readout_compare_runs_both_readouts(capsys):
                               "--readout", "compare"])
     out = capsys.readouterr().out
     assert "fp32, all logits:" in out and "masked-token readout vs all logits:" in out
+
+
+def test_bench_copy_head_times_three_mixtures_that_agree(capsys):
+    load("bench_copy_head").main(["--num_tokens", "16", "--d_model", "8", "--repeats", "1", "--radius", "1"])
+    out = capsys.readouterr().out
+    assert "K 9 neighbours" in out and out.count("sparse/plain") == 2
+    assert float(out.rsplit("log-probability:", 1)[1]) < 1e-4  # the sparse mixture equals the dense one
+
+
+def test_bench_train_takes_a_genie_config_with_a_copy_head(tmp_path, capsys):
+    config = {"num_layers": 1, "num_heads": 2, "d_model": 32, "T": 4, "S": 16, "image_vocab_size": 4096,
+              "num_prompt_frames": 2, "copy_radius": 1, "copy_match_input": True}
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    load("bench_train").main(["--genie_config", str(tmp_path / "config.json"), "--steps", "1", "--warmup_steps", "0"])
+    out = capsys.readouterr().out
+    assert "STMaskGIT 1 layers, d_model 32, T 4, 4x4" in out and "fp32:" in out

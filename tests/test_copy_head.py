@@ -9,7 +9,7 @@ from genie import GenieConfig, STMaskGIT
 from genie.copy_head import CopyHead, previous_frames
 from genie.factorization import factorize_token_ids
 from genie.inference import generate, teacher_forced
-from genie.reference import generate_uncached, teacher_forced_uncached
+from genie.reference import dense_copy_mixture, generate_uncached, teacher_forced_uncached
 
 V, F_ = 64, 2
 MASK = V ** F_
@@ -53,6 +53,8 @@ def test_mixture_matches_a_hand_computation():
             torch.testing.assert_close(out[n, :, f].exp(), p, atol=1e-6, rtol=1e-5)
     torch.testing.assert_close(out[1], logits.log_softmax(dim=1)[1])
     assert torch.isfinite(out).all()
+    with torch.no_grad():  # inference computes the same mixture in place
+        torch.testing.assert_close(head(logits, hidden, sources), out.detach(), atol=0, rtol=0)
 
 
 def test_gradients_are_finite_where_copy_mass_underflows():
@@ -146,17 +148,6 @@ def test_config_validation_and_checkpoint_round_trip(tmp_path):
         model.readout(torch.zeros(3, 32))
 
 
-def dense_mixture(head: CopyHead, logits, hidden, sources):
-    """The mixture written directly in probability space over every value (the slow, obvious way)."""
-    offered = sources != MASK
-    scores = head.score_proj(hidden).masked_fill(torch.nn.functional.pad(~offered, (0, 1)), float("-inf"))
-    w = scores.softmax(dim=-1)
-    factors = factorize_token_ids(sources.masked_fill(~offered, 0), F_, V)  # (N, K, F)
-    onehot = torch.nn.functional.one_hot(factors, V).float()  # (N, K, F, V)
-    copy = (w[:, :-1, None, None] * onehot).sum(dim=1).transpose(1, 2)  # (N, V, F)
-    return (w[:, -1, None, None] * logits.softmax(dim=1) + copy).log()
-
-
 def test_gradients_match_the_dense_mixture_with_repeated_and_dropped_neighbours():
     torch.manual_seed(1)
     head = CopyHead(d_model=8, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
@@ -166,7 +157,7 @@ def test_gradients_match_the_dense_mixture_with_repeated_and_dropped_neighbours(
     sources[1, 5] = 0  # value 0 held by a neighbour while dropped ones also point at it
     sources[1, 6] = MASK
     grads = []
-    for fn in (head, lambda *a: dense_mixture(head, *a)):
+    for fn in (head, lambda *a: dense_copy_mixture(head, *a)):
         logits = (torch.randn(N, V, F_, generator=torch.Generator().manual_seed(2)) * 2).requires_grad_()
         hidden = torch.randn(N, 8, generator=torch.Generator().manual_seed(3)).requires_grad_()
         head.zero_grad()
