@@ -41,6 +41,8 @@ class CopyHead(nn.Module):
         self.score_proj = nn.Linear(d_model, self.num_sources + 1)
         # opt-in (GenieConfig.copy_match_input): embedding of which neighbours hold a given token's own value
         self.match_proj = nn.Linear(self.num_sources, d_model, bias=False) if match_input else None
+        # decoding setting, not a weight (STMaskGIT.set_copy_bias): added to every neighbour's score
+        self.copy_bias = 0.0
 
     def sources(self, prev_BTHW: torch.Tensor) -> torch.Tensor:
         """Previous-frame token ids (B, T, H, W) (mask_token_id where unknown) -> the K neighbours of every
@@ -63,6 +65,8 @@ class CopyHead(nn.Module):
         V, F_ = self.factored_vocab_size, self.num_factored_vocabs
         offered_NK = sources_NK != self.mask_token_id
         scores = self.score_proj(hidden_NC).float()
+        if self.copy_bias:
+            scores = torch.cat([scores[..., :-1] + self.copy_bias, scores[..., -1:]], dim=-1)
         scores = scores.masked_fill(F.pad(~offered_NK, (0, 1), value=False), float("-inf"))
         log_weights = scores.log_softmax(dim=-1)
         w_copy_NK = log_weights[..., :-1].exp()

@@ -71,6 +71,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "unless --latent_actions is given, latent) instead of only the prompt's.")
     p.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT decoding steps per frame.")
     p.add_argument("--temperature", type=float, default=0.0, help="Sampling temperature; 0 samples greedily.")
+    p.add_argument("--copy_bias", type=float, default=0.0,
+                   help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
+                        "(e^bias times the copy weight). > 0 gives sharper futures closer to the previous frame; "
+                        "0 is the model as trained.")
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
                    help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
     add_device_arg(p)
@@ -116,6 +120,8 @@ def check_compatible(model: STMaskGIT, dataset: RawTokenDataset, args) -> None:
                                     f"codebook)")
     if args.actions_from_data and not config.uses_actions:
         raise DataMismatchError(f"--actions_from_data: the checkpoint {args.checkpoint_dir} takes no actions")
+    if args.copy_bias and config.copy_radius is None:
+        raise DataMismatchError(f"--copy_bias: the checkpoint {args.checkpoint_dir} has no copy head (copy_radius)")
     last = args.example_ind + (args.num_examples - 1) * args.example_stride
     if last >= len(dataset):
         raise DataMismatchError(f"{dataset.data_dir}: examples {args.example_ind}..{last} requested but the dataset "
@@ -192,6 +198,7 @@ def generate(args) -> dict:
     model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device)
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride)
     check_compatible(model, dataset, args)
+    model.set_copy_bias(args.copy_bias)
     s, P, T = dataset.metadata["s"], args.num_prompt_frames, args.window_size
     generator = torch.Generator(device).manual_seed(args.seed)
     K = model.config.num_latent_actions
@@ -227,6 +234,8 @@ def generate(args) -> dict:
                     maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
                     stride=args.stride, checkpoint_dir=str(args.checkpoint_dir), val_data_dir=str(args.val_data_dir))
     actions = None
+    if model.copy_head is not None:
+        metadata.update(copy_bias=args.copy_bias)
     if model.config.uses_actions:
         metadata.update(actions_from_data=args.actions_from_data, latent_actions=args.latent_actions)
     if K:

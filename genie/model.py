@@ -153,6 +153,17 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         """`copy_sources` of a window's own frames (B, T, H, W), frame 0 with no frame before it."""
         return None if self.copy_head is None else self.copy_sources(previous_frames(x_BTHW, self.mask_token_id))
 
+    def set_copy_bias(self, bias: float) -> None:
+        """Decoding setting of a model with a copy head: add `bias` to the score of every previous-frame neighbour,
+        i.e. multiply the copy weights by e^bias against the new-token option (then renormalize). 0 (the default)
+        is the trained model; > 0 gives sharper futures that hold more of the previous frame, < 0 the opposite.
+        Not saved with the weights; training never sets it."""
+        if self.copy_head is None:
+            if bias:
+                raise ValueError("copy_bias needs a model with a copy head (config.copy_radius); this one has none")
+            return
+        self.copy_head.copy_bias = float(bias)
+
     def readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Hidden states (..., C) -> factored logits (..., V, F).
 

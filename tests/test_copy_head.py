@@ -187,3 +187,41 @@ def test_match_input_marks_the_neighbours_holding_the_same_token():
     assert emb[0, 2, 0].abs().sum() == 0  # a masked token gets no match
     with pytest.raises(ConfigError, match="copy_match_input"):
         GenieConfig(num_layers=1, copy_match_input=True)
+
+
+def test_copy_bias_scales_the_copy_weights_and_is_a_decoding_setting(tmp_path):
+    torch.manual_seed(3)
+    head = CopyHead(d_model=8, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
+    logits, hidden = torch.randn(4, V, F_), torch.randn(4, 8)
+    sources = torch.randint(0, MASK, (4, 9))
+    sources[0, 2:] = MASK
+    with torch.no_grad():
+        plain = head(logits, hidden, sources)
+        head.copy_bias = 1.5  # the same as raising every neighbour's score bias by 1.5
+        biased = head(logits, hidden, sources)
+        head.copy_bias = 0.0
+        head.score_proj.bias[:-1] += 1.5
+        torch.testing.assert_close(head(logits, hidden, sources), biased)
+        head.score_proj.bias[:-1] -= 1.5
+        head.copy_bias = 60.0  # the new-token option vanishes: only the neighbours' values keep mass
+        copies = head(logits, hidden, sources).exp()
+    assert not torch.equal(plain, biased)
+    factors = factorize_token_ids(sources[0, :2], F_, V)  # (2, F)
+    for f in range(F_):
+        assert copies[0, factors[:, f], f].sum() == pytest.approx(1.0, abs=1e-5)
+
+    model = tiny_copy_model()
+    x = torch.randint(0, MASK, (1, 3, 4, 4))
+    with torch.no_grad():
+        before = model.logits(x)
+        model.set_copy_bias(2.0)
+        assert not torch.equal(model.logits(x), before)
+        model.save_pretrained(tmp_path / "ckpt")
+        assert STMaskGIT.from_pretrained(tmp_path / "ckpt").copy_head.copy_bias == 0.0  # not saved
+        model.set_copy_bias(0.0)
+        torch.testing.assert_close(model.logits(x), before, atol=0, rtol=0)
+    plain_model = STMaskGIT(GenieConfig(num_layers=1))
+    plain_model.set_copy_bias(0.0)
+    with pytest.raises(ValueError, match="copy head"):
+        plain_model.set_copy_bias(1.0)
+

@@ -248,6 +248,7 @@ def test_evaluate_script_runs_as_executable(tiny):
     ("no_checkpoint", "not found"),
     ("no_tokenizer", "--skip_lpips"),
     ("world_size", "single process"),
+    ("copy_bias", "has no copy head"),
 ])
 def test_bad_inputs_give_clear_errors(tiny, tmp_path, capsys, monkeypatch, case, message):
     data, ckpt, extra = tiny.data, tiny.ckpt, ["--skip_lpips"]
@@ -265,6 +266,8 @@ def test_bad_inputs_give_clear_errors(tiny, tmp_path, capsys, monkeypatch, case,
         extra = ["--tokenizer_ckpt", str(tmp_path / "nope.ckpt")]
     elif case == "world_size":
         monkeypatch.setenv("WORLD_SIZE", "2")
+    elif case == "copy_bias":
+        extra += ["--copy_bias", "2"]
     assert main(eval_args(data, ckpt, *extra)) == 1
     captured = capsys.readouterr()
     assert message in captured.err

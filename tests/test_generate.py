@@ -101,6 +101,7 @@ def test_data_checkpoint_mismatch_is_a_clear_error(setup, tmp_path, make_bad, pa
 @pytest.mark.parametrize("extra,pattern", [
     (("--window_size", "3"), r"--window_size 3 must equal the model's T=4 \(checkpoint .*ckpt\)"),
     (("--example_ind", "9", "--num_examples", "10"), r"examples 9..18 requested but the dataset has 14 windows"),
+    (("--copy_bias", "1"), r"--copy_bias: the checkpoint .*ckpt has no copy head"),
 ])
 def test_argument_errors(setup, tmp_path, extra, pattern):
     with pytest.raises(SystemExit, match=pattern):
