@@ -63,7 +63,7 @@ from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
 from common.images import psnr, ssim
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
-from genie.actions import LATENT_ACTION_NAME, check_action_streams, latent_action_sidecar, window_actions
+from genie.actions import LATENT_ACTION_NAME, prepare_action_streams, latent_action_sidecar, window_actions
 from genie.config import check_dataset_matches
 from genie.metrics import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
@@ -490,7 +490,7 @@ def run(args: argparse.Namespace) -> dict:
     check_dataset_matches(model.config, dataset, args.window_size, f"checkpoint {args.checkpoint_dir}",
                           exact_window=False)
     if model.config.uses_actions:
-        check_action_streams(model.config, dataset)
+        prepare_action_streams(model.config, dataset)
     indices = example_indices(len(dataset), args.max_examples, args.spread_examples)
     num_windows = len(indices)
     loader = DataLoader(Subset(dataset, indices), batch_size=args.batch_size, shuffle=False)

@@ -1,21 +1,25 @@
 #!/usr/bin/env bash
 # The main job on the embedded sample world (run ./build.sh first):
-#   1. train a small GENIE on data/sample/train          -> data/genie_model/final_checkpt
-#   2. generate from held-out prompts of data/sample/val -> data/genie_model/generated (tokens)
+#   1. train a small action-conditioned GENIE on data/sample/train -> data/genie_model/final_checkpt
+#      (genie/configs/sample_world_actions.json: the previous-frame pointer at radius 4, conditioned on the walker's
+#      buttons and driving command averaged over each window step)
+#   2. generate from held-out prompts of data/sample/val, playing their recorded actions
+#      -> data/genie_model/generated (tokens)
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
 #   4. evaluate with the challenge metrics, the copy-the-last-frame baselines and the rollout protocol
 #      -> data/genie_model/*.json
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
-# variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, EVAL_ARGS, LPIPS_EVAL_ARGS and
-# ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations) change the defaults below. When
-# UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated there
-# (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json.
+# variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, GENERATE_ARGS (extra generate.py flags;
+# set it empty for a GENIE_CONFIG without actions, e.g. GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=),
+# EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations) change the
+# defaults below. When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is
+# also evaluated there (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json.
 set -euo pipefail
 cd "$(dirname "$0")"
 PY=venv/bin/python
 SAMPLE_DIR=${SAMPLE_DIR:-data/sample}
 OUT=${OUT:-data/genie_model}
-GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/sample_world.json}
+GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/sample_world_actions.json}
 TRAIN=$SAMPLE_DIR/train
 VAL=$SAMPLE_DIR/val
 [ -f "$TRAIN/metadata.json" ] || { echo "run_sample.sh: $TRAIN is missing; run ./build.sh first" >&2; exit 1; }
@@ -26,18 +30,21 @@ VAL=$SAMPLE_DIR/val
   --checkpointing_steps 800 --resume_from_checkpoint latest "$@"
 
 "$PY" genie/generate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --output_dir "$OUT/generated" \
-  --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --example_stride "${EXAMPLE_STRIDE:-2500}" --maskgit_steps 2 --temperature 0
+  --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --example_stride "${EXAMPLE_STRIDE:-2500}" --maskgit_steps 2 --temperature 0 \
+  ${GENERATE_ARGS---actions_from_data}
 "$PY" visualize.py --token_dir "$OUT/generated" --output_dir "$OUT" --fps 4
 
 # evaluate_tf DIR / evaluate_rollout DIR: the two protocols on a token dataset, with the env's extra flags
 evaluate_tf() {
-  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$1" --skip_lpips ${EVAL_ARGS:-}
+  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$1" --skip_lpips \
+    ${EVAL_ARGS---max_examples 270 --spread_examples}
 }
 evaluate_rollout() {
   "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$1" --protocol rollout \
     ${ROLLOUT_EVAL_ARGS:---max_examples 48 --spread_examples --num_prompt_frames 8}
 }
-# CE and accuracy on every validation window; LPIPS (decodes every frame, slow on CPU) on the first 60.
+# CE and accuracy on 270 validation windows spread over the split (a third of them, to fit the CPU budget;
+# EVAL_ARGS= evaluates all 810); LPIPS (decodes every frame, slow on CPU) on the first 60.
 evaluate_tf "$VAL" | tee "$OUT/eval.log"
 "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" ${LPIPS_EVAL_ARGS:---max_examples 60} \
   | tee "$OUT/eval_lpips.log"

@@ -4,6 +4,7 @@
     python train.py --genie_config genie/configs/sample_world.json --output_dir data/genie_model
     python train.py ... --resume_from_checkpoint latest       # continue a killed/preempted run
     python train.py ... --use_actions buttons,driving_command  # condition on real actions (actions/<name>.bin)
+    python train.py ... --use_actions buttons,driving_command --action_step_mean  # ... averaged over each window step
     python train.py ... --use_latent_actions 8                 # condition on LAM latent actions (latent_action.bin)
     accelerate launch --multi_gpu --num_processes 2 train.py ...   # DDP: NCCL on GPUs, gloo on a CPU-only machine
     torchrun --nproc_per_node 2 train.py ...                       # the same without accelerate's launcher
@@ -45,7 +46,7 @@ from common.cli import setup_logging
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
-from genie.actions import action_statistics, check_action_streams, latent_action_sidecar, stream_dims
+from genie.actions import action_statistics, prepare_action_streams, latent_action_sidecar, stream_dims
 from genie.checkpoint import load_state_dict_checked
 from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
 from genie.masking import MaskGITBatch, get_maskgit_collator
@@ -93,6 +94,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="Comma-separated real action streams (actions/<name>.bin of the datasets, e.g. "
                         "buttons,driving_command) to condition on; sets action_names on top of --genie_config. "
                         "Their mean/std over the training split are stored in the checkpoint's config.json.")
+    g.add_argument("--action_step_mean", action="store_true",
+                   help="Read each real action row as the mean over the --stride frames from its window frame to the "
+                        "next (all that was commanded during the step) instead of the single row of the frame; sets "
+                        "action_step_mean on top of --genie_config (evaluation and generation read the checkpoint's).")
     g.add_argument("--use_latent_actions", type=int, default=None, metavar="K",
                    help="Condition on LAM latent actions with codebook size K (ids from actions/latent_action.bin, "
                         "written by lam/label.py); sets num_latent_actions on top of --genie_config.")
@@ -202,12 +207,16 @@ def configure_actions(config: GenieConfig, args, train_ds: RawTokenDataset) -> G
     over the training split) of the real action streams, unless the config already has them for those streams."""
     names = args.use_actions.split(",") if args.use_actions else config.action_names
     num_latent = config.num_latent_actions if args.use_latent_actions is None else args.use_latent_actions
-    changes = {"num_latent_actions": num_latent}
-    if names and (names != config.action_names or config.action_mean is None):
+    step_mean = args.action_step_mean or config.action_step_mean
+    if step_mean and not names:
+        raise ConfigError("--action_step_mean: no real action streams to average (give --use_actions)")
+    changes = {"num_latent_actions": num_latent, "action_step_mean": step_mean}
+    if names and (names != config.action_names or config.action_mean is None or step_mean != config.action_step_mean):
         dim = sum(stream_dims(train_ds, names).values())
-        mean, std = action_statistics(train_ds, names)
-        logger.info("conditioning on actions %s (%d values per frame); mean %s, std %s from %s", names, dim,
-                    np.round(mean, 3).tolist(), np.round(std, 3).tolist(), train_ds.data_dir)
+        mean, std = action_statistics(train_ds, names, step_mean)
+        logger.info("conditioning on actions %s (%d values per frame%s); mean %s, std %s from %s", names, dim,
+                    ", step means" if step_mean else "", np.round(mean, 3).tolist(), np.round(std, 3).tolist(),
+                    train_ds.data_dir)
         changes.update(action_names=names, action_dim=dim, action_mean=mean, action_std=std)
     return dataclasses.replace(config, **changes)
 
@@ -277,7 +286,7 @@ class Trainer:
         raw_train_ds, raw_val_ds = (getattr(ds, "dataset", ds) for ds in (self.train_ds, self.val_ds))  # Subset
         self.config = config = configure_actions(config, args, raw_train_ds)
         for ds in (raw_train_ds, raw_val_ds):
-            check_action_streams(config, ds)
+            prepare_action_streams(config, ds)
         lam_stride = latent_action_sidecar(raw_train_ds).get("latent_action_stride") if config.num_latent_actions \
             else None
         if lam_stride not in (None, args.stride):

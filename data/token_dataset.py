@@ -234,10 +234,13 @@ class RawTokenDataset(Dataset):
     filter_interrupts: drop windows that cross two segments (needs segment_ids.bin).
     filter_overlaps: keep a subset of windows so that each frame is used at most once (validation).
     check_tokens: check each loaded window's token ids against vocab_size (cheap; errors name file and frame).
+    step_mean_streams: action streams read as step means: row t of the window is the mean of the `stride` per-frame
+        rows from window frame t up to (not including) frame t+1, cut at the end of the segment and of the data,
+        i.e. everything commanded during the step t -> t+1 instead of the command at frame t alone.
     """
 
     def __init__(self, data_dir, window_size: int, stride: int = 1, filter_interrupts: bool = True,
-                 filter_overlaps: bool = False, check_tokens: bool = True):
+                 filter_overlaps: bool = False, check_tokens: bool = True, step_mean_streams=()):
         self.data_dir = Path(data_dir)
         _check_window_args(window_size, stride, self.data_dir)
         self.metadata = read_metadata(self.data_dir)
@@ -255,6 +258,7 @@ class RawTokenDataset(Dataset):
                                     f"clips (filter_interrupts=True); pass filter_interrupts=False to use all windows")
         self.action_dims = _scan_action_dir(self.data_dir, num_images)
         self.action_names = sorted(self.action_dims)
+        self.step_mean_streams = self._checked_step_mean_streams(step_mean_streams)
         self._open_arrays()
         if self.segment_ids is not None:
             _check_non_decreasing(self.segment_ids, seg_path)
@@ -277,6 +281,15 @@ class RawTokenDataset(Dataset):
 
     def _action_path(self, name: str) -> Path:
         return self.data_dir / "actions" / f"{name}.bin"
+
+    def _checked_step_mean_streams(self, names) -> frozenset:
+        if isinstance(names, str):
+            raise TokenDatasetError(f"{self.data_dir}: step_mean_streams must be a list of stream names, got {names!r}")
+        missing = sorted(set(names) - set(self.action_names))
+        if missing:
+            raise TokenDatasetError(f"{self.data_dir / 'actions'}: no action stream(s) {[n + '.bin' for n in missing]}"
+                                    f" to average over each step; found {self.action_names or 'none'}")
+        return frozenset(names)
 
     def _open_arrays(self) -> None:
         n, s = self.metadata["num_images"], self.metadata["s"]
@@ -301,11 +314,31 @@ class RawTokenDataset(Dataset):
     def __len__(self) -> int:
         return len(self.valid_start_inds)
 
+    def step_mean_rows(self, name: str, rows) -> np.ndarray:
+        """(len(rows), dim) float32: for each (sorted) frame index in `rows`, the mean of stream `name` over frames
+        row .. row + stride - 1, cut at the end of its segment and of the data; NaN/inf raise."""
+        rows = np.asarray(rows, dtype=np.int64)
+        n = len(self.actions[name])
+        lo, hi = int(rows[0]), min(int(rows[-1]) + self.stride, n)
+        values = np.asarray(self.actions[name][lo:hi], dtype=np.float64)
+        _check_finite(values, self._action_path(name), lo)
+        cumsum = np.concatenate([np.zeros((1, values.shape[1])), np.cumsum(values, axis=0)])
+        first = rows - lo
+        end = np.minimum(first + self.stride, hi - lo)
+        if self.segment_ids is not None:
+            seg = np.asarray(self.segment_ids[lo:hi])
+            end = np.minimum(end, np.searchsorted(seg, seg[first], side="right"))
+        return ((cumsum[end] - cumsum[first]) / (end - first)[:, None]).astype(np.float32)
+
     def get_window_actions(self, start_ind: int) -> dict:
-        """name -> (T, dim) float32 array of the window starting at frame start_ind; NaN/inf raise."""
+        """name -> (T, dim) float32 array of the window starting at frame start_ind (step means for the
+        step_mean_streams); NaN/inf raise."""
         frames = slice(start_ind, start_ind + (self.window_size - 1) * self.stride + 1, self.stride)
         out = {}
         for name in self.action_names:
+            if name in self.step_mean_streams:
+                out[name] = self.step_mean_rows(name, np.arange(frames.start, frames.stop, frames.step))
+                continue
             values = np.array(self.actions[name][frames], dtype=np.float32)
             _check_finite(values, self._action_path(name), start_ind, self.stride)
             out[name] = values

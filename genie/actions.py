@@ -100,8 +100,9 @@ class ActionConditioning(nn.Module):
 
 
 # ---------------------------------------------------------------- reading actions from a token dataset
-def check_action_streams(config: GenieConfig, dataset: RawTokenDataset, require_latent: bool = True) -> bool:
-    """Clear errors when the dataset lacks a stream the config's action inputs need, or has one of the wrong width.
+def prepare_action_streams(config: GenieConfig, dataset: RawTokenDataset, require_latent: bool = True) -> bool:
+    """Clear errors when the dataset lacks a stream the config's action inputs need, or has one of the wrong width;
+    makes the dataset read the real streams as the model was trained on them (step means with action_step_mean).
 
     Returns whether the latent action ids are read (the config uses them and, unless `require_latent`, the dataset
     has them).
@@ -121,6 +122,7 @@ def check_action_streams(config: GenieConfig, dataset: RawTokenDataset, require_
     if use_latent and dataset.action_dims[LATENT_ACTION_NAME] != 1:
         raise TokenDatasetError(f"{dataset.data_dir / 'actions' / (LATENT_ACTION_NAME + '.bin')}: expected one "
                                 f"id per frame, found {dataset.action_dims[LATENT_ACTION_NAME]} values")
+    dataset.step_mean_streams = frozenset(config.action_names or []) if config.action_step_mean else frozenset()
     return use_latent
 
 
@@ -154,16 +156,20 @@ def window_actions(config: GenieConfig, streams: Dict[str, torch.Tensor], use_la
     return actions_BTD, latent_BT
 
 
-def action_statistics(dataset: RawTokenDataset, names: List[str]) -> Tuple[List[float], List[float]]:
+def action_statistics(dataset: RawTokenDataset, names: List[str], step_mean: bool = False
+                      ) -> Tuple[List[float], List[float]]:
     """Per-dimension mean and std of the named streams over every frame of the dataset (read from the memmaps in
-    chunks); dimensions that are constant get std 1 (centred only)."""
+    chunks; with step_mean, of each frame's step mean, see RawTokenDataset); dimensions that are constant get std 1
+    (centred only)."""
     mean, std = [], []
     for name in names:
         values = dataset.actions[name]
         total = np.zeros(values.shape[1])
         total_sq = np.zeros(values.shape[1])
         for a in range(0, len(values), STATS_CHUNK_ROWS):
-            chunk = np.asarray(values[a:a + STATS_CHUNK_ROWS], dtype=np.float64)
+            rows = np.arange(a, min(a + STATS_CHUNK_ROWS, len(values)))
+            chunk = (dataset.step_mean_rows(name, rows).astype(np.float64) if step_mean
+                     else np.asarray(values[a:a + STATS_CHUNK_ROWS], dtype=np.float64))
             total += chunk.sum(axis=0)
             total_sq += (chunk ** 2).sum(axis=0)
         m = total / len(values)

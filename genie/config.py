@@ -53,6 +53,9 @@ class GenieConfig:
     action_dim: int = 0  # total width of those streams (set by train.py from the data)
     action_mean: Optional[List[float]] = None  # per-dimension normalization (train.py: from the training split)
     action_std: Optional[List[float]] = None
+    # Read each real action row as the mean over the data's `stride` frames of the step t -> t+1 (everything
+    # commanded between two window frames) instead of the row of frame t alone; mean/std are of these means.
+    action_step_mean: bool = False
     num_latent_actions: int = 0  # LAM codebook size; ids come from actions/latent_action.bin (0 = off)
     action_dropout: float = 0.1  # training: probability that a frame's action inputs are replaced by "no action"
     # Previous-frame pointer (genie/copy_head.py): each predicted token may copy a token of frame t-1 up to this
@@ -108,6 +111,8 @@ class GenieConfig:
             if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.action_mean + self.action_std) \
                     or min(self.action_std) <= 0:
                 raise ConfigError("GenieConfig: action_mean must be finite and action_std finite and positive")
+        if self.action_step_mean and names is None:
+            raise ConfigError("GenieConfig: action_step_mean needs real action streams (action_names)")
         if self.num_latent_actions < 0:
             raise ConfigError(f"GenieConfig: num_latent_actions must be >= 0, got {self.num_latent_actions}")
         if not 0.0 <= self.action_dropout <= 1.0:

@@ -32,7 +32,7 @@ from common.cli import add_device_arg, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
-from genie.actions import LATENT_ACTION_NAME, check_action_streams, stack_streams, window_actions
+from genie.actions import LATENT_ACTION_NAME, prepare_action_streams, stack_streams, window_actions
 from genie.config import check_dataset_matches
 from genie.inference import generate as generate_frames, teacher_forced
 from genie.model import STMaskGIT
@@ -203,7 +203,7 @@ def generate(args) -> dict:
     generator = torch.Generator(device).manual_seed(args.seed)
     K = model.config.num_latent_actions
     # the latent ids come from the data unless they are played
-    use_latent = (check_action_streams(model.config, dataset, require_latent=args.latent_actions is None)
+    use_latent = (prepare_action_streams(model.config, dataset, require_latent=args.latent_actions is None)
                   if model.config.uses_actions else False)
 
     outputs, latent_outputs, seconds = [], [], 0.0

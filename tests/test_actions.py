@@ -105,6 +105,7 @@ def test_default_config_keeps_the_published_layout():
     ({"action_names": ["a"], "action_dim": 1, "action_mean": [0.0], "action_std": [0.0]}, "positive"),
     ({"num_latent_actions": -1}, "num_latent_actions"),
     ({"action_names": ["latent_action"], "action_dim": 1}, "use num_latent_actions"),
+    ({"action_step_mean": True}, "action_step_mean needs real action streams"),
 ])
 def test_bad_action_fields_are_config_errors(fields, message):
     with pytest.raises(ConfigError, match=message):
@@ -266,6 +267,53 @@ def test_train_with_actions_stores_normalization(action_data, tmp_path):
         train.main(["--genie_config", str(action_data["config"]), "--train_data_dir", str(action_data["train"]),
                     "--val_data_dir", str(action_data["val"]), "--output_dir", str(tmp_path / "bad"),
                     "--window_size", "4", "--stride", "1", "--max_train_steps", "1", "--use_actions", "joint_pos"])
+
+
+def step_means(values, num_segments, length, stride):
+    """Row f: mean of rows f .. f + stride - 1 of f's segment (make_action_dataset's equal-length segments)."""
+    out = np.empty_like(values, dtype=np.float64)
+    for f in range(len(values)):
+        end = min(f + stride, (f // length + 1) * length)
+        out[f] = values[f:end].mean(axis=0)
+    return out
+
+
+def test_train_and_rollout_with_step_mean_actions(action_data, tmp_path, capsys, monkeypatch, stub_scorer):
+    out = tmp_path / "run"
+    argv = ["--genie_config", str(action_data["config"]), "--train_data_dir", str(action_data["train"]),
+            "--val_data_dir", str(action_data["val"]), "--output_dir", str(out), "--window_size", "4",
+            "--stride", "3", "--per_device_train_batch_size", "4", "--max_train_steps", "2",
+            "--eval_every_n_steps", "2", "--max_eval_steps", "1", "--checkpointing_steps", "0", "--no_compile",
+            "--use_actions", "driving_command"]
+    train.main(argv + ["--action_step_mean"])
+    saved = json.loads((out / "final_checkpt" / "config.json").read_text())
+    assert saved["action_step_mean"] is True
+    means = step_means(action_data["train_actions"]["driving_command"], 6, 12, 3)
+    np.testing.assert_allclose(saved["action_mean"], means.mean(axis=0), rtol=1e-5)
+    np.testing.assert_allclose(saved["action_std"], means.std(axis=0), rtol=1e-4)
+    assert not np.allclose(saved["action_std"], action_data["train_actions"]["driving_command"].std(axis=0),
+                           rtol=1e-2)  # the means vary less than the rows
+
+    calls = []
+
+    def spy(model, prompt_BTHW, num_new_frames, *args, **kwargs):
+        calls.append(kwargs)
+        return generate(model, prompt_BTHW, num_new_frames, *args, **kwargs)
+
+    monkeypatch.setattr(evaluate, "generate", spy)
+    assert evaluate.main(["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(out / "final_checkpt"),
+                          "--window_size", "4", "--stride", "3", "--device", "cpu", "--max_examples", "3",
+                          "--tokenizer_ckpt", "stub", "--skip_lpips", "--protocol", "rollout",
+                          "--num_prompt_frames", "2"]) == 0
+    val = RawTokenDataset(action_data["val"], window_size=4, stride=3, filter_overlaps=True)
+    _, val_actions = make_action_dataset(tmp_path / "val_copy", 3, 16, seed=1)
+    val_means = step_means(val_actions["driving_command"], 3, 16, 3)
+    played = calls[0]["actions"].numpy()
+    for i in range(3):  # the evaluator reads the step means the model was trained on
+        np.testing.assert_allclose(played[i], val_means[int(val.valid_start_inds[i])::3][:4], rtol=1e-5)
+
+    with pytest.raises(SystemExit, match="--action_step_mean.*--use_actions"):
+        train.main(argv[:-2] + ["--output_dir", str(tmp_path / "bad"), "--action_step_mean"])
 
 
 @pytest.fixture(scope="module")

@@ -35,7 +35,8 @@ def test_main_job_pipeline_tiny(tmp_path):
     config = tmp_path / "genie.json"
     config.write_text(json.dumps({"num_layers": 1, "num_heads": 2, "d_model": 32, "T": 16, "S": 256,
                                   "image_vocab_size": 262144, "num_prompt_frames": 8, "copy_radius": 1,
-                                  "copy_match_input": True}))
+                                  "copy_match_input": True, "action_names": ["buttons", "driving_command"],
+                                  "action_dim": 7, "action_step_mean": True}))  # as the main command's config
     out = tmp_path / "model"
     env = dict(os.environ, SAMPLE_DIR=str(sample), OUT=str(out), GENIE_CONFIG=str(config),
                EVAL_ARGS="--max_examples 1", LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", NUM_EXAMPLES="1",
@@ -44,6 +45,9 @@ def test_main_job_pipeline_tiny(tmp_path):
     subprocess.run(["bash", str(REPO / "run_sample.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     assert (out / "final_checkpt" / "model.safetensors").exists()
+    saved = json.loads((out / "final_checkpt" / "config.json").read_text())
+    assert saved["action_step_mean"] and len(saved["action_mean"]) == 7  # statistics filled in from the data
+    assert json.loads((out / "generated" / "metadata.json").read_text())["actions_from_data"]
     gifs, pngs = list(out.glob("*.gif")), list(out.glob("*.png"))
     assert gifs and pngs
     assert Image.open(gifs[0]).n_frames > 1

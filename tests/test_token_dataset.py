@@ -116,6 +116,60 @@ def test_item_content_and_actions(tmp_path):
     np.testing.assert_allclose(window["b_cmd"], actions["b_cmd"][start:start + 10:3].astype(np.float32))
 
 
+def brute_step_mean(values, segment_ids, frame, stride):
+    """Mean of rows frame .. frame + stride - 1 that lie in frame's segment and in the data."""
+    rows = [f for f in range(frame, min(frame + stride, len(values)))
+            if segment_ids is None or segment_ids[f] == segment_ids[frame]]
+    return values[rows].astype(np.float64).mean(axis=0)
+
+
+@pytest.mark.parametrize("window_size,stride", [(3, 4), (2, 1), (4, 3), (1, 5)])
+def test_step_mean_streams(tmp_path, window_size, stride):
+    n, rng = 70, np.random.default_rng(stride)
+    segment_ids = np.repeat(np.arange(4), [9, 25, 4, 32]).astype(np.int32)
+    actions = {"cmd": rng.normal(size=(n, 2)) * 50 + 80, "grip": rng.random((n, 1))}
+    make_dataset(tmp_path, n=n, segment_ids=segment_ids, actions=actions)
+    plain = RawTokenDataset(tmp_path, window_size, stride)
+    ds = RawTokenDataset(tmp_path, window_size, stride, step_mean_streams=["cmd"])
+    assert ds.step_mean_streams == {"cmd"}
+    for idx in range(len(ds)):
+        start = int(ds.valid_start_inds[idx])
+        item = ds[idx]["actions"]
+        frames = range(start, start + (window_size - 1) * stride + 1, stride)
+        expected = np.stack([brute_step_mean(actions["cmd"], segment_ids, f, stride) for f in frames])
+        np.testing.assert_allclose(item["cmd"].numpy(), expected, rtol=1e-6)
+        assert item["cmd"].dtype == torch.float32
+        assert torch.equal(item["grip"], plain[idx]["actions"]["grip"])  # other streams: the frame's row
+    # every row at once (the statistics' path), incl. rows whose step is cut by a segment end or the data's end
+    rows = ds.step_mean_rows("cmd", np.arange(n))
+    np.testing.assert_allclose(rows, [brute_step_mean(actions["cmd"], segment_ids, f, stride) for f in range(n)],
+                               rtol=1e-6)
+    if stride == 1:
+        np.testing.assert_allclose(rows, actions["cmd"].astype(np.float32))
+    (tmp_path / "segment_ids.bin").unlink()
+    loose = RawTokenDataset(tmp_path, window_size, stride, filter_interrupts=False, step_mean_streams=["cmd"])
+    np.testing.assert_allclose(loose.step_mean_rows("cmd", np.arange(n)),
+                               [brute_step_mean(actions["cmd"], None, f, stride) for f in range(n)], rtol=1e-6)
+
+
+def test_step_mean_streams_bad(tmp_path, monkeypatch):
+    actions = np.zeros((20, 2))
+    make_dataset(tmp_path, n=20, actions={"cmd": actions})
+    with pytest.raises(TokenDatasetError, match="joint.bin.*found.*cmd"):
+        RawTokenDataset(tmp_path, 2, step_mean_streams=["joint"])
+    with pytest.raises(TokenDatasetError, match="list of stream names"):
+        RawTokenDataset(tmp_path, 2, step_mean_streams="cmd")
+    actions[13, 1] = np.nan
+    actions.astype(np.float32).tofile(tmp_path / "actions" / "cmd.bin")
+    monkeypatch.setattr(token_dataset, "SMALL_FILE_BYTES", 0)  # big files: checked as windows are read
+    ds = RawTokenDataset(tmp_path, 2, stride=3, step_mean_streams=["cmd"])
+    ds[7]  # frames 7 and 10: steps over frames 7..12
+    plain = RawTokenDataset(tmp_path, 2, stride=3)
+    plain[9]  # frames 9 and 12 themselves are finite ...
+    with pytest.raises(TokenDatasetError, match="cmd.bin.*non-finite.*frame 13"):
+        ds[9]  # ... but the step from frame 12 reaches frame 13
+
+
 def test_no_actions_and_no_segment_ids(tmp_path):
     make_dataset(tmp_path, n=20)
     (tmp_path / "segment_ids.bin").unlink()
