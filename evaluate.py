@@ -30,7 +30,8 @@ Rollout protocol (--protocol rollout; same windows, --max_examples, --batch_size
 ground-truth frames are the prompt and the remaining T - P frames are generated free-running
 (genie.inference.generate: each frame from the model's own earlier ones). Action-conditioned and latent-action
 models play the window's own action rows for every frame (control, as the sampling challenge gives the future robot
-states); video-only models get none. Predicted and true
+states); video-only models get none, and so does any model with --withhold_actions (in both protocols; the JSON line
+then carries "actions_withheld": true). Predicted and true
 frames are decoded with the tokenizer (also with --skip_lpips, which then only skips LPIPS) and scored per horizon
 h = 1..T-P (generated frame P + h - 1), averaged over windows; "hold" is the baseline that repeats the decoded last
 prompt frame (P - 1) for every horizon. The JSON line holds only these keys (no delta_psnr or action probe):
@@ -124,6 +125,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
                         help="Which tokens each MaskGIT step reveals: random (published default) or the most "
                              "confident (greedy).")
+    parser.add_argument("--withhold_actions", action="store_true",
+                        help="Models with action inputs: give them none (every frame gets the learned 'no action' "
+                             "input that training's action dropout teaches), to measure what the model predicts "
+                             "from the frames alone. The latent-action metrics (delta_psnr, probe) are skipped.")
     parser.add_argument("--save_outputs_dir", default=None,
                         help="Write the predictions as a token dataset in the generated layout: per window, "
                              "frame 0 | predicted frames 1..T-1 | ground truth frames 1..T-1.")
@@ -198,7 +203,7 @@ def _synchronize(device: torch.device) -> None:
 
 def batch_actions(model: STMaskGIT, batch: dict, device: torch.device, args: argparse.Namespace):
     """(real actions (B, T, D) or None, latent ids (B, T) or None) of a loader batch, for the model's inputs."""
-    if not model.config.uses_actions:
+    if not model.config.uses_actions or args.withhold_actions:
         return None, None
     actions_BTD, latent_BT = window_actions(model.config, batch["actions"], where=f"{args.val_data_dir}/actions")
     return (None if actions_BTD is None else actions_BTD.to(device),
@@ -489,7 +494,7 @@ def run(args: argparse.Namespace) -> dict:
                               filter_overlaps=True)
     check_dataset_matches(model.config, dataset, args.window_size, f"checkpoint {args.checkpoint_dir}",
                           exact_window=False)
-    if model.config.uses_actions:
+    if model.config.uses_actions and not args.withhold_actions:
         prepare_action_streams(model.config, dataset)
     indices = example_indices(len(dataset), args.max_examples, args.spread_examples)
     num_windows = len(indices)
@@ -498,19 +503,20 @@ def run(args: argparse.Namespace) -> dict:
                 device)
 
     if args.protocol == "rollout":
-        return rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device))
+        result = rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device))
+        return {**result, "actions_withheld": True} if args.withhold_actions else result
     scorer = None if args.skip_lpips else frame_scorer(args, dataset, device)
     outputs = [] if args.save_outputs_dir else None
     with torch.no_grad():
         result = evaluate(model, loader, args, device, scorer, outputs)
-        if model.config.num_latent_actions:
+        if model.config.num_latent_actions and not args.withhold_actions:
             if scorer is None:
                 logger.warning("--skip_lpips: nothing is decoded, so delta_psnr is null")
             result["delta_psnr"] = None if scorer is None else delta_psnr(model, loader, args, device, scorer)
             result.update(latent_action_probe(dataset, args.train_data_dir, args.stride))
     if outputs is not None:
         save_outputs(args.save_outputs_dir, outputs, dataset, args.window_size)
-    return result
+    return {**result, "actions_withheld": True} if args.withhold_actions else result
 
 
 def main(argv=None) -> int:

@@ -421,3 +421,40 @@ def test_evaluate_needs_the_checkpoints_action_streams(latent_ckpt, tmp_path, ca
             "--stride", "1", "--device", "cpu", "--skip_lpips"]
     assert evaluate.main(argv) == 1
     assert "latent_action.bin" in capsys.readouterr().err
+
+
+def test_withhold_actions_gives_the_model_none(action_data, latent_ckpt, tmp_path, capsys, monkeypatch, stub_scorer):
+    calls = []
+
+    def spy(model, prompt_BTHW, num_new_frames, *args, **kwargs):
+        calls.append(kwargs)
+        return generate(model, prompt_BTHW, num_new_frames, *args, **kwargs)
+
+    monkeypatch.setattr(evaluate, "generate", spy)
+    write_token_dataset(tmp_path / "plain", np.zeros((20, 4, 4), dtype=np.int64), metadata={"vocab_size": 4096})
+    argv = ["--checkpoint_dir", str(latent_ckpt), "--window_size", "4", "--stride", "1", "--device", "cpu",
+            "--max_examples", "3", "--tokenizer_ckpt", "stub", "--withhold_actions"]
+    # no action streams needed: the rollout runs on a dataset without actions/
+    assert evaluate.main(argv + ["--val_data_dir", str(tmp_path / "plain"), "--skip_lpips", "--protocol",
+                                 "rollout", "--num_prompt_frames", "2"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["actions_withheld"] is True and len(result["rollout_psnr"]) == 2
+    assert calls[0]["actions"] is None and calls[0]["latent_actions"] is None
+
+    # teacher-forced: the same as a model whose action embeddings are all "no action", and no latent-action metrics
+    assert evaluate.main(argv + ["--val_data_dir", str(action_data["val"])]) == 0
+    withheld = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert "delta_psnr" not in withheld and withheld["actions_withheld"] is True
+    model = STMaskGIT.from_pretrained(latent_ckpt)
+    with torch.no_grad():  # every id embeds like the "no action" id
+        table = model.action_cond.latent_action_embed.weight
+        table.copy_(table[K].expand_as(table))
+    model.save_pretrained(tmp_path / "blind")
+    assert evaluate.main(["--checkpoint_dir", str(tmp_path / "blind"), "--window_size", "4", "--stride", "1",
+                          "--device", "cpu", "--max_examples", "3", "--tokenizer_ckpt", "stub",
+                          "--val_data_dir", str(action_data["val"])]) == 0
+    blind = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert blind["loss"] == pytest.approx(withheld["loss"], rel=1e-6) and blind["acc"] == withheld["acc"]
+    with_actions = evaluate.main(argv[:-1] + ["--val_data_dir", str(action_data["val"])])
+    assert with_actions == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["loss"] != withheld["loss"]
