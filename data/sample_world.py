@@ -100,6 +100,8 @@ class WorldConfig:
             raise ValueError(f"WorldConfig needs frame_size >= 8 and gamma > 0, got {self.frame_size}, {self.gamma}")
         if not 0 < self.near_depth < self.caution_depth <= self.clear_depth:
             raise ValueError("WorldConfig needs 0 < near_depth < caution_depth <= clear_depth")
+        if not self.turn_speed > 0:
+            raise ValueError(f"WorldConfig needs turn_speed > 0 (degrees per tic), got {self.turn_speed}")
 
 
 def _hold(rng: np.random.Generator, lo: int, hi: int) -> int:

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from common.cli import add_device_arg, add_hidden_alias, resolve_device
-from data.sample_world import HELDOUT_MAPS, TRAIN_MAPS, build_sample_world
+from data.sample_world import HELDOUT_MAPS, TRAIN_MAPS, WorldConfig, build_sample_world
 from magvit2.model import VQModel
 from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 
@@ -88,6 +88,9 @@ def parse_args(argv=None):
     p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
                    help="maps of the held-out validation episodes (the last one is never trained on)")
     p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
+    p.add_argument("--turn_speed", type=float, default=WorldConfig.turn_speed,
+                   help="degrees the walker turns per tic while a turn button is held (default %(default)s: 26 "
+                        "degrees per 15-tic window step); lower makes a world whose view moves less per step")
     p.add_argument("--tokenizer_ckpt", default=SHIPPED_TOKENIZER,
                    help="tokenizer checkpoint directory used to encode the frames (default: the shipped one)")
     add_hidden_alias(p, "--tokenizer", "tokenizer_ckpt")
@@ -97,7 +100,10 @@ def parse_args(argv=None):
     p.add_argument("--batch_size", type=int, default=256, help="frames per encoder batch when tokenizing")
     add_device_arg(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild every step even if outputs exist")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if not args.turn_speed > 0:
+        p.error(f"--turn_speed must be > 0 degrees per tic, got {args.turn_speed}")
+    return args
 
 
 def main(argv=None):
@@ -106,7 +112,7 @@ def main(argv=None):
     raw = out / "raw"
     build_sample_world(raw, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=1, episode_len=args.episode_len,
-                       overwrite=args.overwrite)
+                       overwrite=args.overwrite, cfg=WorldConfig(turn_speed=args.turn_speed))
     if args.train_tokenizer:
         tokenizer_dir = train_tokenizer(raw, out / "tokenizer")
         tokenizer_ref = str(tokenizer_dir)

@@ -162,3 +162,37 @@ def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", argv + ["--overwrite"])
     sw.main()
     assert (out / "train.npz").stat().st_mtime_ns != mtimes["train.npz"]
+
+
+def test_slower_walker_turns_by_its_turn_speed():
+    slow = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60, turn_speed=0.875)
+    data = sw.generate_split(("MAP01",), episodes_per_map=1, episode_len=200, seed=0, cfg=slow, progress=False)
+    left, right = data["actions_buttons"][:, 2] == 1, data["actions_buttons"][:, 3] == 1
+    assert left.sum() + right.sum() > 0
+    turn_rate = np.deg2rad(0.875) * sw.HZ  # half the default's
+    angular = data["actions_driving_command"][:, 1]
+    np.testing.assert_allclose(angular[left], turn_rate, rtol=0.02)
+    np.testing.assert_allclose(angular[right], -turn_rate, rtol=0.02)
+    with pytest.raises(ValueError, match="turn_speed > 0"):
+        sw.WorldConfig(turn_speed=0.0)
+
+
+def test_build_sample_passes_turn_speed(tmp_path, monkeypatch, capsys):
+    from magvit2 import build_sample
+
+    seen = {}
+
+    def fake_build(out_dir, cfg=None, **kwargs):
+        seen["cfg"] = cfg
+        raise SystemExit(0)  # stop before tokenizing
+
+    monkeypatch.setattr(build_sample, "build_sample_world", fake_build)
+    with pytest.raises(SystemExit):
+        build_sample.main(["--output_dir", str(tmp_path), "--turn_speed", "0.5"])
+    assert seen["cfg"].turn_speed == 0.5 and seen["cfg"].walk_speed == sw.WorldConfig().walk_speed
+    with pytest.raises(SystemExit):
+        build_sample.main(["--output_dir", str(tmp_path)])
+    assert seen["cfg"] == sw.WorldConfig()  # the default world is unchanged
+    with pytest.raises(SystemExit, match="2"):
+        build_sample.main(["--output_dir", str(tmp_path), "--turn_speed", "0"])
+    assert "--turn_speed must be > 0" in capsys.readouterr().err
