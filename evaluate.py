@@ -64,7 +64,7 @@ from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
 from common.images import psnr, ssim
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
-from genie.actions import LATENT_ACTION_NAME, prepare_action_streams, latent_action_sidecar, window_actions
+from genie.actions import LATENT_ACTION_NAME, latent_action_sidecar, prepare_action_streams, window_actions
 from genie.config import check_dataset_matches
 from genie.metrics import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
@@ -504,7 +504,14 @@ def run(args: argparse.Namespace) -> dict:
 
     if args.protocol == "rollout":
         result = rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device))
-        return {**result, "actions_withheld": True} if args.withhold_actions else result
+    else:
+        result = teacher_forced_result(model, loader, dataset, args, device)
+    return {**result, "actions_withheld": True} if args.withhold_actions else result
+
+
+def teacher_forced_result(model: STMaskGIT, loader, dataset: RawTokenDataset, args: argparse.Namespace,
+                          device: torch.device) -> dict:
+    """The teacher-forced protocol's metrics, plus the latent-action metrics for models that have them."""
     scorer = None if args.skip_lpips else frame_scorer(args, dataset, device)
     outputs = [] if args.save_outputs_dir else None
     with torch.no_grad():
@@ -516,7 +523,7 @@ def run(args: argparse.Namespace) -> dict:
             result.update(latent_action_probe(dataset, args.train_data_dir, args.stride))
     if outputs is not None:
         save_outputs(args.save_outputs_dir, outputs, dataset, args.window_size)
-    return {**result, "actions_withheld": True} if args.withhold_actions else result
+    return result
 
 
 def main(argv=None) -> int:

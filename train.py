@@ -46,7 +46,7 @@ from common.cli import setup_logging
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
-from genie.actions import action_statistics, prepare_action_streams, latent_action_sidecar, stream_dims
+from genie.actions import action_statistics, latent_action_sidecar, prepare_action_streams, stream_dims
 from genie.checkpoint import load_state_dict_checked
 from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
 from genie.masking import MaskGITBatch, get_maskgit_collator

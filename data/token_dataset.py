@@ -258,7 +258,7 @@ class RawTokenDataset(Dataset):
                                     f"clips (filter_interrupts=True); pass filter_interrupts=False to use all windows")
         self.action_dims = _scan_action_dir(self.data_dir, num_images)
         self.action_names = sorted(self.action_dims)
-        self.step_mean_streams = self._checked_step_mean_streams(step_mean_streams)
+        self.set_step_mean_streams(step_mean_streams)
         self._open_arrays()
         if self.segment_ids is not None:
             _check_non_decreasing(self.segment_ids, seg_path)
@@ -282,14 +282,15 @@ class RawTokenDataset(Dataset):
     def _action_path(self, name: str) -> Path:
         return self.data_dir / "actions" / f"{name}.bin"
 
-    def _checked_step_mean_streams(self, names) -> frozenset:
+    def set_step_mean_streams(self, names) -> None:
+        """Read these action streams as step means from now on (see the class doc); () reads every row as is."""
         if isinstance(names, str):
             raise TokenDatasetError(f"{self.data_dir}: step_mean_streams must be a list of stream names, got {names!r}")
         missing = sorted(set(names) - set(self.action_names))
         if missing:
             raise TokenDatasetError(f"{self.data_dir / 'actions'}: no action stream(s) {[n + '.bin' for n in missing]}"
                                     f" to average over each step; found {self.action_names or 'none'}")
-        return frozenset(names)
+        self.step_mean_streams = frozenset(names)
 
     def _open_arrays(self) -> None:
         n, s = self.metadata["num_images"], self.metadata["s"]

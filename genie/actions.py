@@ -122,7 +122,7 @@ def prepare_action_streams(config: GenieConfig, dataset: RawTokenDataset, requir
     if use_latent and dataset.action_dims[LATENT_ACTION_NAME] != 1:
         raise TokenDatasetError(f"{dataset.data_dir / 'actions' / (LATENT_ACTION_NAME + '.bin')}: expected one "
                                 f"id per frame, found {dataset.action_dims[LATENT_ACTION_NAME]} values")
-    dataset.step_mean_streams = frozenset(config.action_names or []) if config.action_step_mean else frozenset()
+    dataset.set_step_mean_streams(config.action_names if config.action_step_mean else ())
     return use_latent
 
 
@@ -167,9 +167,9 @@ def action_statistics(dataset: RawTokenDataset, names: List[str], step_mean: boo
         total = np.zeros(values.shape[1])
         total_sq = np.zeros(values.shape[1])
         for a in range(0, len(values), STATS_CHUNK_ROWS):
-            rows = np.arange(a, min(a + STATS_CHUNK_ROWS, len(values)))
-            chunk = (dataset.step_mean_rows(name, rows).astype(np.float64) if step_mean
-                     else np.asarray(values[a:a + STATS_CHUNK_ROWS], dtype=np.float64))
+            b = min(a + STATS_CHUNK_ROWS, len(values))
+            chunk = dataset.step_mean_rows(name, np.arange(a, b)) if step_mean else values[a:b]
+            chunk = np.asarray(chunk, dtype=np.float64)
             total += chunk.sum(axis=0)
             total_sq += (chunk ** 2).sum(axis=0)
         m = total / len(values)
