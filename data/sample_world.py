@@ -12,11 +12,13 @@ or sound, and every game tic (35 Hz, so the challenge's 16-frame windows at stri
   of the pose from frame t to frame t+1 (the motion commanded at frame t, like the 1X robot's): linear = the
   displacement projected on the heading at frame t in map units/s (64 units ~ 2 m; top speed about 146, and Doom
   momentum makes it ramp up and coast for a few tics); angular = heading change in rad/s, counter-clockwise
-  positive, so TURN_LEFT gives +1.07 and TURN_RIGHT -1.07.
+  positive, so TURN_LEFT gives +0.53 and TURN_RIGHT -0.53.
 - `poses` (N, 3) float32 = (x, y, heading in degrees) at frame t.
 No strafing, so (linear, angular) fully describes the motion, as for a wheeled base. The walker moves at half of
-Doom's walking and turning speed (ViZDoom delta inputs), so that one model step (15 tics) turns the view at most 26
-degrees and moves it at most ~62 units instead of 53 degrees and 125: consecutive model frames still overlap.
+Doom's walking speed and turns at a quarter of its turning speed (ViZDoom delta inputs; 30 degrees/s, a mobile
+robot's pace rather than a gamer's), so that one model step (15 tics) turns the view at most 13 degrees and moves it
+at most ~62 units instead of 53 degrees and 125: consecutive model frames overlap well. WorldConfig(turn_speed=1.75)
+gives the walker of earlier versions (26 degrees per step).
 
 Episodes start at a random deathmatch spawn spot (chosen by the engine seed) after an unrecorded warm-up walk of
 random length, in god mode (damaging floors). An episode that a teleporter or a level exit cuts short, or whose
@@ -76,7 +78,7 @@ class WorldConfig:
     frame_size: int = 64  # output frames are frame_size x frame_size RGB
     gamma: float = 1.5  # brighten Doom's dark sectors (like its own gamma-correction setting); 1 = unchanged
     walk_speed: float = 12.5  # forward/backward input while a move button is held (Doom's walk is 25)
-    turn_speed: float = 1.75  # degrees per tic while a turn button is held (Doom's turn is 3.5)
+    turn_speed: float = 0.875  # degrees per tic while a turn button is held (Doom's turn is 3.5)
     warmup_min_tics: int = 35  # unrecorded warm-up walk of random length in [min, max] tics (the player is
     warmup_max_tics: int = 400  # frozen for the first few tics of an episode)
     near_depth: int = 12  # obstacle closer than this straight ahead: turn in place ...

@@ -89,8 +89,9 @@ def parse_args(argv=None):
                    help="maps of the held-out validation episodes (the last one is never trained on)")
     p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
     p.add_argument("--turn_speed", type=float, default=WorldConfig.turn_speed,
-                   help="degrees the walker turns per tic while a turn button is held (default %(default)s: 26 "
-                        "degrees per 15-tic window step); lower makes a world whose view moves less per step")
+                   help="degrees the walker turns per tic while a turn button is held (default %(default)s: 13 "
+                        "degrees per 15-tic window step; 1.75 was the default before, 26 degrees); lower makes a "
+                        "world whose view moves less per step")
     p.add_argument("--tokenizer_ckpt", default=SHIPPED_TOKENIZER,
                    help="tokenizer checkpoint directory used to encode the frames (default: the shipped one)")
     add_hidden_alias(p, "--tokenizer", "tokenizer_ckpt")

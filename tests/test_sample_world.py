@@ -164,12 +164,12 @@ def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
     assert (out / "train.npz").stat().st_mtime_ns != mtimes["train.npz"]
 
 
-def test_slower_walker_turns_by_its_turn_speed():
-    slow = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60, turn_speed=0.875)
-    data = sw.generate_split(("MAP01",), episodes_per_map=1, episode_len=200, seed=0, cfg=slow, progress=False)
+def test_other_walker_turns_by_its_turn_speed():
+    fast = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60, turn_speed=1.75)  # the walker of earlier versions
+    data = sw.generate_split(("MAP01",), episodes_per_map=1, episode_len=200, seed=0, cfg=fast, progress=False)
     left, right = data["actions_buttons"][:, 2] == 1, data["actions_buttons"][:, 3] == 1
     assert left.sum() + right.sum() > 0
-    turn_rate = np.deg2rad(0.875) * sw.HZ  # half the default's
+    turn_rate = np.deg2rad(1.75) * sw.HZ  # twice the default's
     angular = data["actions_driving_command"][:, 1]
     np.testing.assert_allclose(angular[left], turn_rate, rtol=0.02)
     np.testing.assert_allclose(angular[right], -turn_rate, rtol=0.02)
