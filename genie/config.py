@@ -168,6 +168,10 @@ class TrainingRecipe:
     # this share of the examples has part of its masked tokens filled with the model's own greedy guesses, as
     # MaskGIT's later steps see them at inference, so the model learns how far to trust them
     self_reveal_ratio: float = 0.0
+    # this share of the examples first has each fully masked frame filled with the model's own greedy prediction,
+    # and the frame after it becomes the target instead: predicted from a context whose last frame is the model's
+    # guess, as every frame after the first is in a free-running rollout
+    own_context_ratio: float = 0.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

@@ -30,19 +30,23 @@ def training_loss(model, batch: MaskGITBatch, recipe: TrainingRecipe) -> LossOut
     """The loss of a collated batch: two-stream when it has targets, else the masked-token loss."""
     if batch.target_ids is not None:
         return two_stream_loss(model, batch)
-    return masked_loss(model, batch, recipe.self_reveal_ratio)
+    return masked_loss(model, batch, recipe.self_reveal_ratio, recipe.own_context_ratio)
 
 
-def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0) -> LossOutput:
+def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0,
+                own_context_ratio: float = 0.0) -> LossOutput:
     """Factored CE and accuracy over the masked tokens of frames 1..T-1 of batch.input_ids (B, T, H, W).
 
-    In training mode a share self_reveal_ratio of the examples first has part of its masked tokens filled with the
-    model's own guesses (`reveal_own_predictions`).
+    In training mode a share own_context_ratio of the examples first predicts its fully masked frames and is then
+    trained on the frames after them (`shift_targets_past_own_frames`), and a share self_reveal_ratio has part of
+    its masked tokens filled with the model's own guesses (`reveal_own_predictions`).
     """
     x_BTHW, labels_BTHW = batch.input_ids, batch.labels
     model.check_tokens(x_BTHW)
     B, T = x_BTHW.shape[:2]
     cond_BTC = model.action_embeds(B, T, batch.actions, batch.latent_actions)
+    if model.training and own_context_ratio > 0:
+        x_BTHW = shift_targets_past_own_frames(model, x_BTHW, cond_BTC, own_context_ratio)
     if model.training and self_reveal_ratio > 0:
         x_BTHW = reveal_own_predictions(model, x_BTHW, cond_BTC, self_reveal_ratio)
     sources_BTSK = model.window_copy_sources(x_BTHW)
@@ -50,6 +54,44 @@ def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0) -> L
     relevant_BTS = rearrange(x_BTHW == model.mask_token_id, "B T H W -> B T (H W)")
     relevant_BTS[:, 0] = False  # frame 0 is always given
     return loss_at(model, x_BTSC, relevant_BTS, rearrange(labels_BTHW, "B T H W -> B T (H W)"), sources_BTSK)
+
+
+@torch.no_grad()
+def greedy_guesses(model, x_bTHW: torch.Tensor, cond_bTC: Optional[torch.Tensor],
+                   where_bTHW: torch.Tensor) -> torch.Tensor:
+    """The model's greedy one-pass predictions (N,) of the positions `where_bTHW` (b, T, H, W) of x_bTHW."""
+    where_bTS = rearrange(where_bTHW, "b T H W -> b T (H W)")
+    sources_bTSK = model.window_copy_sources(x_bTHW)
+    hidden_NC = model.hidden_states(x_bTHW, cond_bTC, sources_BTSK=sources_bTSK)[where_bTS]
+    logits_1VFN = rearrange(model.readout(hidden_NC, None if sources_bTSK is None else sources_bTSK[where_bTS]),
+                            "N V F -> 1 V F N")
+    return sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]  # greedy, as the sampler picks
+
+
+@torch.no_grad()
+def shift_targets_past_own_frames(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
+                                  ratio: float) -> torch.Tensor:
+    """Training inputs (B, T, H, W) whose targets follow the model's own frames, for a share `ratio` of the
+    examples: each fully masked frame t >= 1 is filled with the model's greedy one-pass prediction (one extra pass
+    without gradients) and frame t+1, when it exists and is not fully masked itself, is masked whole instead.
+
+    In a free-running rollout every generated frame after the first is predicted from a context whose last frames
+    are the model's own guesses (on the sample world mostly wrong tokens, and what the copy head copies from); a
+    model trained only on true context frames has never seen one.
+    """
+    whole_BT = (x_BTHW == model.mask_token_id).flatten(2).all(-1)
+    whole_BT[:, 0] = False
+    chosen_B = (torch.rand(x_BTHW.shape[0], device=x_BTHW.device) < ratio) & whole_BT.any(1)
+    if not chosen_B.any():
+        return x_BTHW
+    x_bTHW, whole_bT = x_BTHW[chosen_B], whole_BT[chosen_B]  # a copy
+    fill_bTHW = whole_bT[:, :, None, None].expand_as(x_bTHW)
+    guesses_N = greedy_guesses(model, x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B], fill_bTHW)
+    next_bT = torch.zeros_like(whole_bT)
+    next_bT[:, 1:] = whole_bT[:, :-1] & ~whole_bT[:, 1:]
+    x_bTHW[fill_bTHW] = guesses_N
+    x_bTHW[next_bT] = model.mask_token_id
+    return x_BTHW.index_put((chosen_B,), x_bTHW)
 
 
 @torch.no_grad()
@@ -69,13 +111,7 @@ def reveal_own_predictions(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch
     x_bTHW = x_BTHW[chosen_B]  # a copy
     masked_bTHW = x_bTHW == model.mask_token_id
     masked_bTHW[:, 0] = False
-    masked_bTS = rearrange(masked_bTHW, "b T H W -> b T (H W)")
-    sources_bTSK = model.window_copy_sources(x_bTHW)
-    hidden_NC = model.hidden_states(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B],
-                                    sources_BTSK=sources_bTSK)[masked_bTS]
-    logits_1VFN = rearrange(model.readout(hidden_NC, None if sources_bTSK is None else sources_bTSK[masked_bTS]),
-                            "N V F -> 1 V F N")
-    guesses_N = sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]  # greedy, as the sampler picks
+    guesses_N = greedy_guesses(model, x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B], masked_bTHW)
     share_bT11 = 1 - cosine_schedule(torch.rand(*masked_bTHW.shape[:2], 1, 1, device=x_BTHW.device))
     reveal_bTHW = masked_bTHW & (torch.rand(masked_bTHW.shape, device=x_BTHW.device) < share_bT11)
     x_bTHW[masked_bTHW] = torch.where(reveal_bTHW[masked_bTHW], guesses_N, model.mask_token_id)

@@ -13,7 +13,7 @@ from common.config import ConfigError
 from common.errors import CheckpointError
 from genie import GenieConfig, MaskGITBatch, STMaskGIT, TrainingRecipe
 from genie.checkpoint import load_state_dict_checked
-from genie.objectives import reveal_own_predictions, two_stream_loss
+from genie.objectives import reveal_own_predictions, shift_targets_past_own_frames, two_stream_loss
 from genie.reference import full_logits_loss
 
 CONFIG_DIR = Path(genie.__file__).parent / "configs"
@@ -373,8 +373,38 @@ def test_self_reveal_only_in_training_and_only_for_the_chosen_share():
     assert torch.equal(reveal_own_predictions(model, x, None, ratio=0.0), x)
 
 
+@pytest.mark.parametrize("variant", ["plain", "copy_match"])
+def test_own_context_fills_whole_masked_frames_with_greedy_guesses_and_targets_the_next(variant):
+    model = variant_model(variant)
+    config = model.config
+    x = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    m = config.mask_token_id
+    x[0, 1] = m  # example 0: frame 1 whole, frame 2 becomes the target
+    x[1, 3] = m  # example 1: only the last frame whole, so nothing follows it
+    x[1, 1, 0, :2] = m  # partly masked tokens are left as they are
+    shifted = shift_targets_past_own_frames(model, x, None, ratio=1.0)
+    with torch.no_grad():  # each whole frame gets the argmax of the full-logits path on the original input
+        logits = model.logits(x).transpose(1, 2)  # (B, F, V, T, H, W)
+    greedy = logits[:, 0].argmax(1) + config.factored_vocab_size * logits[:, 1].argmax(1)
+    for b, t in [(0, 1), (1, 3)]:
+        assert torch.equal(shifted[b, t], greedy[b, t])
+    assert (shifted[0, 2] == m).all()
+    assert torch.equal(shifted[0, [0, 3]], x[0, [0, 3]])
+    assert torch.equal(shifted[1, :3], x[1, :3]), "nothing after the last frame: only the fill"
+    assert torch.equal(shift_targets_past_own_frames(model, x, None, ratio=0.0), x)
+    model.train()
+    batch = MaskGITBatch(x, random_tokens(config, B=2, T=4, mask_rate=0.0, seed=3))
+    torch.manual_seed(5)
+    trained_on = model(batch, TrainingRecipe(own_context_ratio=1.0))
+    expected = full_logits_loss(model.eval(), MaskGITBatch(shifted, batch.labels))
+    torch.testing.assert_close(trained_on.loss, expected.loss)
+    model.eval()
+    torch.testing.assert_close(model(batch, TrainingRecipe(own_context_ratio=1.0)).loss,
+                               full_logits_loss(model, batch).loss)  # eval mode: the targets stay
+
+
 @pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio",
-                                   "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio"])
+                                   "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio", "own_context_ratio"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
         TrainingRecipe(**{field: 1.5})
