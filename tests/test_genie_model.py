@@ -403,8 +403,8 @@ def test_own_context_fills_whole_masked_frames_with_greedy_guesses_and_targets_t
                                full_logits_loss(model, batch).loss)  # eval mode: the targets stay
 
 
-@pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio",
-                                   "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio", "own_context_ratio"])
+@pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio", "two_stream_ratio",
+                                   "two_stream_partial_ratio", "self_reveal_ratio", "own_context_ratio"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
         TrainingRecipe(**{field: 1.5})
