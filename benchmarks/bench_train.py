@@ -7,19 +7,22 @@
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
 
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
-gradient clipping and AdamW. Tokens per step = batch * T * S. The published implementation trains this shape at
+gradient clipping and AdamW; with --genie_config, under that config's training recipe (--recipe) and, for a model
+with action inputs, with random action streams. Tokens per step = batch * T * S. The published implementation trains this shape at
 ~1,840 tokens/s on the project's 2-core CPU (fp32, batch 2); the ratio to that figure is printed (it is only
 meaningful for that shape on that machine).
 """
 import argparse
 import time
+from typing import Optional
 
 import torch
 
 from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device
+from genie.actions import LATENT_ACTION_NAME
 from genie.masking import get_maskgit_collator
 from genie.attention import set_cpu_bf16_math
-from genie.config import GenieConfig
+from genie.config import GenieConfig, TrainingRecipe
 from genie.model import STMaskGIT
 from genie.reference import full_logits_loss
 
@@ -32,6 +35,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--genie_config", default=None,
                    help="Benchmark the model of this config JSON (e.g. genie/configs/sample_world.json, with its "
                         "copy head) instead of the shape flags below (--batch_size still applies).")
+    p.add_argument("--recipe", default="config", choices=("config", "published"),
+                   help="With --genie_config: train with the config's training recipe, as train.py does (e.g. "
+                        "its self_reveal_ratio adds a pass without gradients for that share of the examples), or "
+                        "with the published one (masking and loss only). Without --genie_config: the published one.")
     p.add_argument("--num_layers", type=int, default=8, help="Transformer blocks.")
     p.add_argument("--d_model", type=int, default=256, help="Model width.")
     p.add_argument("--num_heads", type=int, default=8, help="Attention heads.")
@@ -55,13 +62,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def make_step(model, optimizer, collate, windows, device, mixed_precision, full_readout: bool = False):
+def make_step(model, optimizer, collate, windows, device, mixed_precision, full_readout: bool = False,
+              recipe: Optional[TrainingRecipe] = None):
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=mixed_precision == "bf16")
 
     def step():
         batch = collate(windows).to(device)
         with autocast:
-            loss = (full_logits_loss(model, batch) if full_readout else model(batch)).loss
+            loss = (full_logits_loss(model, batch) if full_readout else model(batch, recipe)).loss
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         optimizer.step()
@@ -73,8 +81,11 @@ def make_step(model, optimizer, collate, windows, device, mixed_precision, full_
 
 
 def build(args, device):
+    recipe = TrainingRecipe()
     if args.genie_config:
         config = GenieConfig.from_pretrained(args.genie_config)
+        if args.recipe == "config":
+            recipe = TrainingRecipe.from_pretrained(args.genie_config)
     else:
         config = GenieConfig(num_layers=args.num_layers, num_heads=args.num_heads, d_model=args.d_model, T=args.T,
                              S=args.s ** 2, image_vocab_size=args.image_vocab_size)
@@ -85,17 +96,30 @@ def build(args, device):
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4, fused=device.type == "cuda" or None)
     generator = torch.Generator().manual_seed(0)
     windows = [{"tokens": torch.randint(0, config.image_vocab_size, (config.T, config.H, config.W),
-                                        generator=generator)} for _ in range(args.batch_size)]
-    return config, model, optimizer, windows
+                                        generator=generator),
+                "actions": random_action_streams(config, generator)} for _ in range(args.batch_size)]
+    return config, recipe, model, optimizer, windows
+
+
+def random_action_streams(config: GenieConfig, generator: torch.Generator) -> dict:
+    """Random per-frame action streams (name -> (T, k)) for an action-conditioned config: only their concatenated
+    width matters to the model, so the first stream gets all action_dim columns and the others none."""
+    streams = {}
+    for i, name in enumerate(config.action_names or []):
+        streams[name] = torch.randn(config.T, config.action_dim if i == 0 else 0, generator=generator)
+    if config.num_latent_actions:
+        streams[LATENT_ACTION_NAME] = torch.randint(0, config.num_latent_actions, (config.T, 1),
+                                                    generator=generator).float()
+    return streams
 
 
 def measure(args, device, mixed_precision: str, math_path: bool, full_readout: bool = False) -> float:
     """Seconds per optimizer step (wall) of a freshly built model; prints one line."""
-    config, model, optimizer, windows = build(args, device)
+    config, recipe, model, optimizer, windows = build(args, device)
     set_cpu_bf16_math(model, math_path)
     compiled = torch.compile(model) if args.compile else model
-    step = make_step(compiled, optimizer, get_maskgit_collator(config, seed=0), windows, device, mixed_precision,
-                     full_readout)
+    step = make_step(compiled, optimizer, get_maskgit_collator(config, recipe, seed=0), windows, device,
+                     mixed_precision, full_readout, recipe)
     for _ in range(args.warmup_steps):
         step()
     t0, cpu0 = time.perf_counter(), time.process_time()
@@ -123,7 +147,7 @@ def main(argv=None) -> None:
         raise SystemExit("bench_train.py: compare one thing at a time (--readout compare or --mixed_precision compare)")
     device = resolve_device(args.device)
     apply_num_threads(args.num_threads)
-    config, model = build(args, device)[:2]
+    config, recipe, model = build(args, device)[:3]
     params = sum(p.numel() for p in model.parameters())
     print(f"STMaskGIT {config.num_layers} layers, d_model {config.d_model}, T {config.T}, {config.H}x{config.W}, "
           f"{params / 1e6:.1f} M params, batch {args.batch_size}, {device.type}, threads {torch.get_num_threads()}")
