@@ -122,6 +122,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
                              "when sampling (e^bias times the copy weight). > 0 gives sharper futures closer to "
                              "the previous frame (better LPIPS, lower PSNR); 0 is the model as trained.")
+    parser.add_argument("--greedy_tokens", choices=("joint", "factored"), default="joint",
+                        help="How greedy decoding (--temperature 0) picks each token of a model with a copy "
+                             "head (copy_radius): joint: the most probable whole token of its copy-or-new "
+                             "mixture; factored: each factor's argmax of the per-factor marginals (the earlier "
+                             "behaviour; it can combine two neighbours' factors into a token neither holds). "
+                             "Models without a copy head decode the same either way.")
     parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
                         help="Which tokens each MaskGIT step reveals: random (published default) or the most "
                              "confident (greedy).")
@@ -490,6 +496,7 @@ def run(args: argparse.Namespace) -> dict:
     if args.copy_bias and model.copy_head is None:
         raise DataMismatchError(f"--copy_bias: the checkpoint {args.checkpoint_dir} has no copy head (copy_radius)")
     model.set_copy_bias(args.copy_bias)
+    model.set_joint_greedy(args.greedy_tokens == "joint")
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
                               filter_overlaps=True)
     check_dataset_matches(model.config, dataset, args.window_size, f"checkpoint {args.checkpoint_dir}",

@@ -17,14 +17,14 @@ its K previous-frame neighbours hold the same token. That is token-level motion 
 position came from in the last step), which a spatio-temporal transformer, attending over time only at the same
 position, otherwise has to infer through several layers.
 """
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
 
-from genie.factorization import factorize_token_ids
+from genie.factorization import factorize_token_ids, unfactorize_token_ids
 
 
 class CopyHead(nn.Module):
@@ -60,15 +60,20 @@ class CopyHead(nn.Module):
         match_BTSK = (sources_BTSK == x_BTS1) & (x_BTS1 != self.mask_token_id)
         return self.match_proj(match_BTSK.to(self.match_proj.weight.dtype))
 
-    def forward(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor, sources_NK: torch.Tensor) -> torch.Tensor:
-        """Readout logits (..., V, F), hidden states (..., C), sources (..., K) -> log-probabilities (..., V, F)."""
-        V, F_ = self.factored_vocab_size, self.num_factored_vocabs
-        offered_NK = sources_NK != self.mask_token_id
+    def log_weights(self, hidden_NC: torch.Tensor, offered_NK: torch.Tensor) -> torch.Tensor:
+        """Hidden states (..., C) and which neighbours are offered (..., K) -> log mixture weights (..., K + 1) of
+        the K neighbours and, last, of a new token (copy_bias added to the neighbours' scores)."""
         scores = self.score_proj(hidden_NC).float()
         if self.copy_bias:
             scores = torch.cat([scores[..., :-1] + self.copy_bias, scores[..., -1:]], dim=-1)
         scores = scores.masked_fill(F.pad(~offered_NK, (0, 1), value=False), float("-inf"))
-        log_weights = scores.log_softmax(dim=-1)
+        return scores.log_softmax(dim=-1)
+
+    def forward(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor, sources_NK: torch.Tensor) -> torch.Tensor:
+        """Readout logits (..., V, F), hidden states (..., C), sources (..., K) -> log-probabilities (..., V, F)."""
+        V, F_ = self.factored_vocab_size, self.num_factored_vocabs
+        offered_NK = sources_NK != self.mask_token_id
+        log_weights = self.log_weights(hidden_NC, offered_NK)
         w_copy_NK = log_weights[..., :-1].exp()
         factors_NFK = rearrange(factorize_token_ids(sources_NK.masked_fill(~offered_NK, 0), F_, V),
                                 "... K F -> ... F K")
@@ -87,6 +92,41 @@ class CopyHead(nn.Module):
         # gradient, so that the value's gradient is counted once.
         mixed_NFK = torch.where(repeated_NFK, mixed_NFK.detach(), mixed_NFK)
         return rearrange(log_new_NFV.scatter(-1, factors_NFK, mixed_NFK), "... F V -> ... V F")
+
+
+    @torch.no_grad()
+    def mode(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor,
+             sources_NK: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The mixture's most probable whole token at each position and its probability: (ids (...), probs (...)).
+
+        `forward` returns the mixture's marginal distribution of each factor. Their factor-wise argmax is the mode
+        of a product distribution (the readout alone), but not of a mixture: with the weight spread over
+        neighbours, the low factor of one neighbour's token and the high factor of another's can each win, giving a
+        token that no option proposed (on the sample world a sixth of the greedy tokens of a rollout). The
+        mixture gives token c the probability w_new * prod_f softmax(readout_f)(c_f) + sum_k w_k [neighbour_k = c],
+        so its mode is one of the offered neighbours' tokens or the readout's own factor-wise mode (every other
+        token has no copy mass and a lower readout probability).
+        """
+        V, F_ = self.factored_vocab_size, self.num_factored_vocabs
+        offered_NK = sources_NK != self.mask_token_id
+        log_weights = self.log_weights(hidden_NC, offered_NK)
+        w_copy_NK, log_w_new_N = log_weights[..., :-1].exp(), log_weights[..., -1]
+        log_new_NFV = rearrange(logits_NVF, "... V F -> ... F V").float().log_softmax(dim=-1)
+        best_log_new_NF, best_NF = log_new_NFV.max(dim=-1)
+        readout_mode_N = unfactorize_token_ids(best_NF, F_, V)
+        # neighbours: their copy mass (summed over the neighbours holding the same token) + the readout's share
+        factors_NFK = rearrange(factorize_token_ids(sources_NK.masked_fill(~offered_NK, 0), F_, V),
+                                "... K F -> ... F K")
+        mass_NK = _mass_per_value(sources_NK, w_copy_NK)[0]
+        p_neighbour_NK = mass_NK + (log_w_new_N.unsqueeze(-1) + log_new_NFV.gather(-1, factors_NFK).sum(-2)).exp()
+        p_neighbour_NK = p_neighbour_NK.masked_fill(~offered_NK, -1.0)
+        # the readout's mode: its share + the mass of any neighbour holding it
+        p_readout_N = (log_w_new_N + best_log_new_NF.sum(-1)).exp() + (
+            w_copy_NK * (sources_NK == readout_mode_N.unsqueeze(-1))).sum(-1)
+        p_best_neighbour_N, k_N = p_neighbour_NK.max(dim=-1)
+        use_neighbour_N = p_best_neighbour_N > p_readout_N
+        ids_N = torch.where(use_neighbour_N, sources_NK.gather(-1, k_N.unsqueeze(-1)).squeeze(-1), readout_mode_N)
+        return ids_N, torch.where(use_neighbour_N, p_best_neighbour_N, p_readout_N)
 
 
 def _mass_per_value(values_NK: torch.Tensor, weights_NK: torch.Tensor):

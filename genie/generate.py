@@ -75,6 +75,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
                         "(e^bias times the copy weight). > 0 gives sharper futures closer to the previous frame; "
                         "0 is the model as trained.")
+    p.add_argument("--greedy_tokens", choices=("joint", "factored"), default="joint",
+                   help="How greedy decoding (--temperature 0) picks each token of a model with a copy head "
+                        "(copy_radius): joint: the most probable whole token of its copy-or-new mixture; factored: "
+                        "each factor's argmax of the per-factor marginals (the earlier behaviour; it can combine two "
+                        "neighbours' factors into a token neither holds). Models without a copy head decode the "
+                        "same either way.")
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
                    help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
     add_device_arg(p)
@@ -199,6 +205,7 @@ def generate(args) -> dict:
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride)
     check_compatible(model, dataset, args)
     model.set_copy_bias(args.copy_bias)
+    model.set_joint_greedy(args.greedy_tokens == "joint")
     s, P, T = dataset.metadata["s"], args.num_prompt_frames, args.window_size
     generator = torch.Generator(device).manual_seed(args.seed)
     K = model.config.num_latent_actions
@@ -235,7 +242,7 @@ def generate(args) -> dict:
                     stride=args.stride, checkpoint_dir=str(args.checkpoint_dir), val_data_dir=str(args.val_data_dir))
     actions = None
     if model.copy_head is not None:
-        metadata.update(copy_bias=args.copy_bias)
+        metadata.update(copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens)
     if model.config.uses_actions:
         metadata.update(actions_from_data=args.actions_from_data, latent_actions=args.latent_actions)
     if K:

@@ -12,7 +12,7 @@ from einops import rearrange
 
 from genie.copy_head import previous_frames
 from genie.kv_cache import TemporalKVCache
-from genie.sampling import maskgit_sample
+from genie.sampling import Prediction, maskgit_sample
 from genie.transformer import TemporalMode
 
 
@@ -23,14 +23,15 @@ def _frames(cond_BTC: Optional[torch.Tensor], start: int, end: int) -> Optional[
 
 def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: TemporalKVCache,
                mode: TemporalMode = TemporalMode.APPEND, commit: int = 0,
-               cond_BTC: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+               cond_BTC: Optional[torch.Tensor] = None, with_mode: bool = False):
     """Run T frames at absolute positions first_frame.. against the frames in kv_cache.
 
     mode APPEND / PREFILL: the frames follow the cached ones (first_frame == kv_cache.length); `commit` of them
     (from the first) are then kept in the cache. TARGETS: teacher-forced targets, frame first_frame + i attends to
     cached frames < first_frame + i and to itself (the cache holds frames 0..T-1 and first_frame is 1).
     cond_BTC: action embeddings of these T frames (B, T, C), `model.action_embeds` of the window sliced to them.
-    Returns factored logits (B, V, F, T, H, W), or None in PREFILL mode.
+    Returns factored logits (B, V, F, T, H, W), or None in PREFILL mode; with_mode: a `Prediction` of them with
+    the model's greedy tokens and their probabilities (B, T, H, W) where those are not the factor-wise argmax.
     Inputs are not checked (ids the sampler produced: no device sync per step); `check_frames` does that.
     """
     sources_BTSK = _copy_sources(model, x_BTHW, first_frame, mode, kv_cache)
@@ -38,7 +39,13 @@ def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: Temporal
     kv_cache.commit(commit, x_BTHW)
     if x_BTSC is None:
         return None
-    return rearrange(model.readout(x_BTSC, sources_BTSK), "B T (H W) V F -> B V F T H W", H=model.config.H)
+    return model.frames_prediction(x_BTSC, sources_BTSK, with_mode)
+
+
+def frame_slice(prediction, index) -> Prediction:
+    """Frames `index` of a `Prediction` of windows (logits (B, V, F, T, H, W), mode (B, T, H, W)): int or slice."""
+    return Prediction(prediction.logits[:, :, :, index],
+                      *(None if v is None else v[:, index] for v in prediction[1:]))
 
 
 def _copy_sources(model, x_BTHW: torch.Tensor, first_frame: int, mode: TemporalMode,
@@ -115,8 +122,8 @@ def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_step
     all_logits = []
     for t in range(T0, total):
         def logits_fn(frame_BHW):
-            return run_frames(model, frame_BHW.unsqueeze(1), t, kv_cache,
-                              cond_BTC=_frames(cond_BTC, t, t + 1))[:, :, :, 0]
+            return frame_slice(run_frames(model, frame_BHW.unsqueeze(1), t, kv_cache,
+                                          cond_BTC=_frames(cond_BTC, t, t + 1), with_mode=True), 0)
 
         sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], model.mask_token_id, maskgit_steps,
                                                   temperature, unmask_mode, generator)
@@ -166,11 +173,26 @@ def teacher_forced(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperat
 
     def logits_fn(frames_NHW):
         frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
-        logits_BVFnHW = run_frames(model, frames_BnHW, 1, kv_cache, TemporalMode.TARGETS,
-                                   cond_BTC=_frames(target_cond_BTC, 1, T))
-        return rearrange(logits_BVFnHW, "B V F n H W -> (B n) V F H W")
+        return targets_to_frames(run_frames(model, frames_BnHW, 1, kv_cache, TemporalMode.TARGETS,
+                                            cond_BTC=_frames(target_cond_BTC, 1, T), with_mode=True))
 
     return sample_targets(model, logits_fn, B, T, x_BTHW, maskgit_steps, temperature, unmask_mode, generator)
+
+
+def stack_frames(predictions) -> Prediction:
+    """Per-frame `Prediction`s (logits (B, V, F, H, W), mode (B, H, W)) -> one of their frames stacked at dim 3
+    of the logits and dim 1 of the mode."""
+    logits = torch.stack([p.logits for p in predictions], dim=3)
+    if predictions[0].mode_ids is None:
+        return Prediction(logits)
+    return Prediction(logits, *(torch.stack([p[i] for p in predictions], dim=1) for i in (1, 2)))
+
+
+def targets_to_frames(prediction: Prediction) -> Prediction:
+    """A `Prediction` of the n targets of B windows (logits (B, V, F, n, H, W), mode (B, n, H, W)) as one of B * n
+    frames (logits (B*n, V, F, H, W), mode (B*n, H, W))."""
+    return Prediction(rearrange(prediction.logits, "B V F n H W -> (B n) V F H W"),
+                      *(None if v is None else rearrange(v, "B n H W -> (B n) H W") for v in prediction[1:]))
 
 
 def sample_targets(model, logits_fn, B: int, T: int, x_BTHW: torch.Tensor, maskgit_steps: int, temperature: float,

@@ -24,6 +24,7 @@ from genie.copy_head import CopyHead, previous_frames
 from genie.factorization import factorize_token_ids
 from genie.kv_cache import TemporalKVCache
 from genie.masking import MaskGITBatch
+from genie.sampling import Prediction
 from genie.transformer import STTransformer, TemporalMode
 
 MUP_BASE_D_MODEL = 256  # the published muP base shape (set_mup_shapes hard-codes d_model 256)
@@ -69,6 +70,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.copy_head = None if config.copy_radius is None else CopyHead(
             config.d_model, config.copy_radius, config.num_factored_vocabs, config.factored_vocab_size,
             config.mask_token_id, config.copy_match_input)
+        self.joint_greedy = True  # decoding setting (set_joint_greedy), not a weight
 
     @property
     def mask_token_id(self) -> int:
@@ -164,18 +166,35 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             return
         self.copy_head.copy_bias = float(bias)
 
+    def set_joint_greedy(self, enabled: bool) -> None:
+        """Decoding setting of a model with a copy head: greedy decoding (temperature 0) takes the mixture's most
+        probable whole token (True, the default; `CopyHead.mode`) or each factor's argmax of the per-factor
+        marginals (False; what this code did before, and a token no option proposed when the copy weight is
+        spread over neighbours). No effect on a model without a copy head, whose distribution is a product over
+        factors; not saved with the weights."""
+        self.joint_greedy = bool(enabled)
+
     def readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Hidden states (..., C) -> factored logits (..., V, F).
 
         sources_NK (..., K): `copy_sources` at the same positions, required when the model has a copy head (its
         logits are then log-probabilities of the mixture, genie/copy_head.py)."""
+        return self.predict(x_NC, sources_NK, with_mode=False).logits
+
+    def predict(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None,
+                with_mode: bool = True) -> Prediction:
+        """`readout`, plus, when greedy decoding must not take the factor-wise argmax (a copy head with
+        joint_greedy), the model's most probable tokens (...) and their probabilities (...) (`CopyHead.mode`)."""
         x_scaled = x_NC if self.readout_width_mult is None else x_NC / self.readout_width_mult
         logits = rearrange(self.out_x_proj(x_scaled), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
         if self.copy_head is None:
-            return logits
+            return Prediction(logits)
         if sources_NK is None:
             raise ValueError("this model copies from the previous frame (copy_radius is set): pass copy_sources")
-        return self.copy_head(logits, x_NC, sources_NK)
+        mixed = self.copy_head(logits, x_NC, sources_NK)
+        if not (with_mode and self.joint_greedy):
+            return Prediction(mixed)
+        return Prediction(mixed, *self.copy_head.mode(logits, x_NC, sources_NK))
 
     def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
                latent_actions: Optional[torch.Tensor] = None,
@@ -188,11 +207,25 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         B, T = x_BTHW.shape[:2]
         return self.logits_unchecked(x_BTHW, self.action_embeds(B, T, actions, latent_actions, known_T))
 
-    def logits_unchecked(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """`logits` without input checks, with precomputed action embeddings (B, T, C) or None."""
+    def logits_unchecked(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None,
+                         with_mode: bool = False):
+        """`logits` without input checks, with precomputed action embeddings (B, T, C) or None; with_mode: a
+        `Prediction` of them (`frames_prediction`)."""
         sources_BTSK = self.window_copy_sources(x_BTHW)
-        return rearrange(self.readout(self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK), sources_BTSK),
-                         "B T (H W) V F -> B V F T H W", H=self.config.H)
+        return self.frames_prediction(self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK), sources_BTSK,
+                                      with_mode)
+
+    def frames_prediction(self, x_BTSC: torch.Tensor, sources_BTSK: Optional[torch.Tensor],
+                          with_mode: bool = False):
+        """Final hidden states (B, T, S, C) -> factored logits (B, V, F, T, H, W); with_mode: a `Prediction` of
+        them, with the greedy tokens and their probabilities (B, T, H, W) where those are not the factor-wise
+        argmax (else None)."""
+        prediction = self.predict(x_BTSC, sources_BTSK, with_mode)
+        logits_BVFTHW = rearrange(prediction.logits, "B T (H W) V F -> B V F T H W", H=self.config.H)
+        if not with_mode:
+            return logits_BVFTHW
+        return Prediction(logits_BVFTHW, *(None if v is None else rearrange(v, "B T (H W) -> B T H W", H=self.config.H)
+                                           for v in prediction[1:]))
 
     def forward(self, batch: MaskGITBatch, recipe: Optional[TrainingRecipe] = None) -> objectives.LossOutput:
         """The training loss of a collated batch (genie/objectives.py): factored CE and accuracy over the tokens

@@ -65,7 +65,9 @@ def greedy_guesses(model, x_bTHW: torch.Tensor, cond_bTC: Optional[torch.Tensor]
     hidden_NC = model.hidden_states(x_bTHW, cond_bTC, sources_BTSK=sources_bTSK)[where_bTS]
     logits_1VFN = rearrange(model.readout(hidden_NC, None if sources_bTSK is None else sources_bTSK[where_bTS]),
                             "N V F -> 1 V F N")
-    return sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]  # greedy, as the sampler picks
+    # each factor's argmax: for a copy head, not the joint mode that inference decodes with (`CopyHead.mode`);
+    # the trained recipe's guesses are kept as they were
+    return sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]
 
 
 @torch.no_grad()

@@ -14,7 +14,8 @@ from einops import rearrange
 
 from genie.factorization import factorize_token_ids
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
-from genie.inference import check_teacher_forced, generation_inputs, sample_targets
+from genie.inference import (check_teacher_forced, frame_slice, generation_inputs, sample_targets, stack_frames,
+                             targets_to_frames)
 from genie.masking import MaskGITBatch
 from genie.objectives import LossOutput
 from genie.sampling import maskgit_sample
@@ -46,7 +47,7 @@ def generate_uncached(model, prompt_BTHW: torch.Tensor, num_new_frames: int, mas
         def logits_fn(frame_BHW):
             window_BTHW = tokens_BTHW.clone()
             window_BTHW[:, t] = frame_BHW
-            return model.logits_unchecked(window_BTHW, cond_BTC)[:, :, :, t]
+            return frame_slice(model.logits_unchecked(window_BTHW, cond_BTC, with_mode=True), t)
 
         sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], model.mask_token_id, maskgit_steps,
                                                   temperature, unmask_mode, generator)
@@ -73,8 +74,8 @@ def teacher_forced_uncached(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2,
             window_BTHW[:, t] = frames_BnHW[:, t - 1]
             window_BTHW[:, t + 1:] = model.mask_token_id
             cond_BTC = model.action_embeds(B, T, actions, latent_actions, t)
-            per_target.append(model.logits_unchecked(window_BTHW, cond_BTC)[:, :, :, t])
-        return rearrange(torch.stack(per_target, dim=1), "B n V F H W -> (B n) V F H W")
+            per_target.append(frame_slice(model.logits_unchecked(window_BTHW, cond_BTC, with_mode=True), t))
+        return targets_to_frames(stack_frames(per_target))
 
     return sample_targets(model, logits_fn, B, T, x_BTHW, maskgit_steps, temperature, unmask_mode, generator)
 

@@ -4,7 +4,7 @@ Differences from the published sampler, on purpose: the temperature divides the 
 divides the probabilities, which Categorical renormalizes, so its temperature had no effect), and tokens given in
 the input frame are never changed.
 """
-from typing import Callable, Optional, Tuple
+from typing import Callable, NamedTuple, Optional, Tuple, Union
 
 import torch
 from einops import rearrange
@@ -14,6 +14,15 @@ from genie.schedule import num_masked_after_step
 
 UNMASK_MODES = ("random", "greedy")
 GREEDY_TEMPERATURE = 1e-8  # at or below this temperature, sampling is argmax
+
+
+class Prediction(NamedTuple):
+    """A model's prediction at some positions: factored logits (..., V, F) (log-probabilities for a model with a
+    copy head) and, when its greedy choice is not the factor-wise argmax of those (the copy head's mixture,
+    `CopyHead.mode`), the most probable whole token ids (...) and their probabilities (...)."""
+    logits: torch.Tensor
+    mode_ids: Optional[torch.Tensor] = None
+    mode_probs: Optional[torch.Tensor] = None
 
 
 def sample_factored_tokens(logits_BVFS: torch.Tensor, temperature: float = 0.0,
@@ -40,12 +49,15 @@ def sample_factored_tokens(logits_BVFS: torch.Tensor, temperature: float = 0.0,
     return unfactorize_token_ids(factors_BSF, F_, V), confidence_BS
 
 
-def maskgit_sample(logits_fn: Callable[[torch.Tensor], torch.Tensor], frame_BHW: torch.Tensor, mask_token_id: int,
+def maskgit_sample(logits_fn: Callable[[torch.Tensor], Union[torch.Tensor, Prediction]], frame_BHW: torch.Tensor,
+                   mask_token_id: int,
                    maskgit_steps: int, temperature: float = 0.0, unmask_mode: str = "random",
                    generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Fill the masked tokens of a batch of frames in `maskgit_steps` steps.
 
-    logits_fn: (B, H, W) token ids (mask_token_id where unknown) -> factored logits (B, V, F, H, W).
+    logits_fn: (B, H, W) token ids (mask_token_id where unknown) -> factored logits (B, V, F, H, W), or a
+    `Prediction` of them with mode ids and probabilities (B, H, W), which greedy steps then take (and their
+    probabilities as confidences) instead of the factor-wise argmax.
     frame_BHW: the starting frames; tokens other than mask_token_id are given and are never changed.
     After step s (of n), ceil(cos(pi/2 (s+1)/n) * S) tokens stay masked (genie.schedule); the last step reveals
     all. Which masked tokens are revealed: "random" (the published default) or "greedy" (most confident first).
@@ -63,10 +75,16 @@ def maskgit_sample(logits_fn: Callable[[torch.Tensor], torch.Tensor], frame_BHW:
     frame_BS = frame_BHW.reshape(B, S).clone()
     first_logits = None
     for step in range(maskgit_steps):
-        logits_BVFHW = logits_fn(frame_BS.view(B, H, W))
+        prediction = logits_fn(frame_BS.view(B, H, W))
+        if not isinstance(prediction, Prediction):
+            prediction = Prediction(prediction)
+        logits_BVFHW = prediction.logits
         if first_logits is None:
             first_logits = logits_BVFHW
-        tokens_BS, confidence_BS = sample_factored_tokens(logits_BVFHW.flatten(3), temperature, generator)
+        if prediction.mode_ids is not None and temperature <= GREEDY_TEMPERATURE:
+            tokens_BS, confidence_BS = prediction.mode_ids.reshape(B, S), prediction.mode_probs.reshape(B, S)
+        else:
+            tokens_BS, confidence_BS = sample_factored_tokens(logits_BVFHW.flatten(3), temperature, generator)
         masked_BS = frame_BS == mask_token_id
         reveal_BS = masked_BS
         num_left = num_masked_after_step(step, maskgit_steps, S)

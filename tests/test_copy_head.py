@@ -7,7 +7,7 @@ import torch
 from common.config import ConfigError
 from genie import GenieConfig, STMaskGIT
 from genie.copy_head import CopyHead, previous_frames
-from genie.factorization import factorize_token_ids
+from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.inference import generate, teacher_forced
 from genie.reference import dense_copy_mixture, generate_uncached, teacher_forced_uncached
 
@@ -225,3 +225,76 @@ def test_copy_bias_scales_the_copy_weights_and_is_a_decoding_setting(tmp_path):
     with pytest.raises(ValueError, match="copy head"):
         plain_model.set_copy_bias(1.0)
 
+
+
+def joint_mixture_probs(head, logits, hidden, sources):
+    """The mixture's probability of every whole token (N, V^F), written out over the whole vocabulary."""
+    offered = sources != MASK
+    w = head.log_weights(hidden, offered).exp()  # (N, K + 1)
+    readout = logits.float().log_softmax(dim=1)  # (N, V, F)
+    ids = torch.arange(V ** F_)
+    factors = factorize_token_ids(ids, F_, V)  # (V^F, F)
+    p = w[:, -1:] * sum(readout[:, factors[:, f], f] for f in range(F_)).exp()
+    for k in range(sources.shape[1]):
+        p = p + w[:, k:k + 1] * ((ids[None] == sources[:, k:k + 1]) & offered[:, k:k + 1])
+    return p
+
+
+@pytest.mark.parametrize("copy_bias", [0.0, 1.0])
+def test_mode_is_the_most_probable_whole_token_of_the_mixture(copy_bias):
+    torch.manual_seed(5)
+    head = CopyHead(d_model=8, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
+    head.copy_bias = copy_bias
+    N, K = 400, 9
+    logits, hidden = torch.randn(N, V, F_) * 2, torch.randn(N, 8) * 2
+    # neighbours drawn from a few tokens sharing factors, so that the factor-wise argmax can mix two of them
+    pool = torch.tensor([[3, 7], [3, 9], [5, 9], [5, 7], [11, 2]])
+    sources = (pool[:, 0] + V * pool[:, 1])[torch.randint(0, len(pool), (N, K))]
+    sources[:40, :5] = MASK  # some not offered
+    sources[40:50] = MASK  # none offered: the readout's own mode
+    with torch.no_grad():
+        ids, probs = head.mode(logits, hidden, sources)
+        joint = joint_mixture_probs(head, logits, hidden, sources)
+        factor_wise = unfactorize_token_ids(head(logits, hidden, sources).argmax(dim=1), F_, V)
+    torch.testing.assert_close(probs, joint.max(dim=1).values)
+    torch.testing.assert_close(joint.gather(1, ids[:, None])[:, 0], probs)
+    torch.testing.assert_close(ids[40:50], unfactorize_token_ids(logits[40:50].argmax(dim=1), F_, V), atol=0, rtol=0)
+    chimeras = joint.gather(1, factor_wise[:, None])[:, 0] < probs - 1e-6
+    assert chimeras.any()  # the factor-wise argmax misses the mode somewhere, and the mode is never worse
+    assert (joint.gather(1, factor_wise[:, None])[:, 0] <= probs + 1e-6).all()
+
+
+def test_greedy_decoding_takes_the_joint_mode_unless_set_to_factored():
+    model = tiny_copy_model(radius=1, seed=4, match=True)
+
+    def gen():
+        return torch.Generator().manual_seed(0)
+
+    x = torch.randint(0, MASK // 8, (4, 6, 4, 4))
+    x[:, 1:] = x[:, :1].roll(1, dims=-1)  # a moving view: neighbours hold the previous frame's tokens
+    window = x[:, :3].clone()
+    window[:, 2] = MASK
+    with torch.no_grad():
+        sources = model.window_copy_sources(window)
+        prediction = model.predict(model.hidden_states(window, sources_BTSK=sources)[:, 2], sources[:, 2])
+        mode, factor_wise = prediction.mode_ids.view(4, 4, 4), unfactorize_token_ids(
+            prediction.logits.argmax(dim=-2), F_, V).view(4, 4, 4)
+        assert not torch.equal(mode, factor_wise)
+        # one MaskGIT step decodes the first new frame from the prompt alone: the joint mode, or each factor's argmax
+        torch.testing.assert_close(generate(model, x[:, :2], 1, maskgit_steps=1)[0][:, 2], mode, atol=0, rtol=0)
+        joint, joint_tf = generate(model, x[:, :2], 3, generator=gen())[0], teacher_forced(model, x, generator=gen())[0]
+        torch.testing.assert_close(joint_tf, teacher_forced_uncached(model, x, generator=gen())[0], atol=0, rtol=0)
+        torch.testing.assert_close(joint, generate_uncached(model, x[:, :2], 3, generator=gen())[0], atol=0, rtol=0)
+        model.set_joint_greedy(False)
+        torch.testing.assert_close(generate(model, x[:, :2], 1, maskgit_steps=1)[0][:, 2], factor_wise, atol=0,
+                                   rtol=0)
+        factored = generate(model, x[:, :2], 3, generator=gen())[0]
+        torch.testing.assert_close(factored, generate_uncached(model, x[:, :2], 3, generator=gen())[0], atol=0,
+                                   rtol=0)
+        assert not torch.equal(joint, factored)
+        assert not torch.equal(joint_tf, teacher_forced(model, x, generator=gen())[0])
+        # sampling at a temperature draws factors from the logits whatever the setting
+        drawn = generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0]
+        model.set_joint_greedy(True)
+        torch.testing.assert_close(generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0], drawn, atol=0,
+                                   rtol=0)

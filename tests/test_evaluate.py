@@ -362,3 +362,13 @@ def test_rollout_needs_a_tokenizer_even_with_skip_lpips(tiny, tmp_path, capsys):
                           "--tokenizer_ckpt", str(tmp_path / "nope.ckpt"))) == 1
     captured = capsys.readouterr()
     assert "decodes frames for PSNR and SSIM" in captured.err and captured.out == ""
+
+
+@pytest.mark.parametrize("flag, joint", [((), True), (("--greedy_tokens", "factored"), False)])
+def test_greedy_tokens_flag_sets_the_models_decoding(tiny, capsys, monkeypatch, flag, joint):
+    settings = []
+    real = STMaskGIT.set_joint_greedy
+    monkeypatch.setattr(STMaskGIT, "set_joint_greedy", lambda model, enabled: settings.append(enabled) or real(
+        model, enabled))
+    assert main(eval_args(tiny.data, tiny.ckpt, "--skip_lpips", "--max_examples", "1", *flag)) == 0
+    assert settings == [joint]

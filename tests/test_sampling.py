@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from genie.factorization import unfactorize_token_ids
-from genie.sampling import maskgit_sample, sample_factored_tokens
+from genie.sampling import Prediction, maskgit_sample, sample_factored_tokens
 from genie.schedule import num_masked_after_step
 
 V, F_ = 8, 2
@@ -119,3 +119,33 @@ def test_bad_arguments():
         maskgit_sample(fn, frame, MASK, 2, unmask_mode="confidence")
     with pytest.raises(ValueError, match="temperature"):
         maskgit_sample(fn, frame, MASK, 2, temperature=-1.0)
+
+
+def test_greedy_steps_take_a_predictions_mode_and_its_probabilities_as_confidence():
+    B, H, W = 2, 4, 4
+    g = torch.Generator().manual_seed(3)
+    logits = torch.randn(B, V, F_, H, W, generator=g) * 3
+    mode = torch.randint(0, MASK, (B, H, W), generator=g)
+    probs = torch.rand(B, H, W, generator=g)
+    calls = []
+
+    def logits_fn(frame_BHW):
+        calls.append(frame_BHW.clone())
+        return Prediction(logits, mode, probs)
+
+    frame = torch.full((B, H, W), MASK)
+    sample, first = maskgit_sample(logits_fn, frame, MASK, 1)
+    assert torch.equal(sample, mode) and torch.equal(first, logits)
+    # two greedy-order steps: the first reveals the masked tokens of highest mode probability
+    calls.clear()
+    maskgit_sample(logits_fn, frame, MASK, 2, unmask_mode="greedy")
+    revealed = calls[1] != MASK
+    S = H * W
+    kept = S - num_masked_after_step(0, 2, S)
+    assert torch.equal(revealed.flatten(1), probs.flatten(1) >= probs.flatten(1).topk(kept, dim=1).values[:, -1:])
+    assert torch.equal(calls[1][revealed], mode[revealed])
+    # at a temperature the factors are drawn from the logits, the mode ignored
+    drawn, _ = maskgit_sample(logits_fn, frame, MASK, 1, temperature=1.0, generator=torch.Generator().manual_seed(0))
+    plain, _ = maskgit_sample(lambda f: logits, frame, MASK, 1, temperature=1.0,
+                              generator=torch.Generator().manual_seed(0))
+    assert torch.equal(drawn, plain) and not torch.equal(drawn, mode)
