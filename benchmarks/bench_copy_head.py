@@ -9,7 +9,9 @@ Three ways to turn readout logits (N, 512, 2) into log-probabilities, timed side
           besides the output)
   dense   genie.reference.dense_copy_mixture: the mixture written over every value through a (N, K, F, V) one-hot
 Each is timed for inference (no autograd) and for training (forward + backward). Prints milliseconds, the ratios
-sparse / plain and dense / sparse, and the largest difference between sparse and dense.
+sparse / plain and dense / sparse, and the largest difference between sparse and dense. Then what greedy decoding
+adds at inference: CopyHead.mode (the mixture's most probable whole token, the default) next to the factor-wise
+argmax of the sparse mixture (`--greedy_tokens factored`).
 """
 import argparse
 import time
@@ -76,6 +78,11 @@ def main(argv=None) -> int:
               + "  ".join(f"{name} {1e3 * s:8.1f} ms" for name, s in seconds.items())
               + f"   sparse/plain {seconds['sparse'] / seconds['plain']:.2f}x"
               + f"   dense/sparse {seconds['dense'] / seconds['sparse']:.2f}x")
+    factor_wise = timed(lambda: head(logits_NVF, hidden_NC, sources_NK).argmax(dim=1), args.repeats, False)
+    joint = timed(lambda: (head(logits_NVF, hidden_NC, sources_NK), head.mode(logits_NVF, hidden_NC, sources_NK)),
+                  args.repeats, False)
+    print(f"greedy decoding: mixture + factor-wise argmax {1e3 * factor_wise:8.1f} ms   mixture + joint mode "
+          f"{1e3 * joint:8.1f} ms   joint/factor-wise {joint / factor_wise:.2f}x")
     with torch.no_grad():
         diff = (head(logits_NVF, hidden_NC, sources_NK)
                 - dense_copy_mixture(head, logits_NVF, hidden_NC, sources_NK)).abs().max().item()

@@ -111,17 +111,20 @@ class CopyHead(nn.Module):
         offered_NK = sources_NK != self.mask_token_id
         log_weights = self.log_weights(hidden_NC, offered_NK)
         w_copy_NK, log_w_new_N = log_weights[..., :-1].exp(), log_weights[..., -1]
-        log_new_NFV = rearrange(logits_NVF, "... V F -> ... F V").float().log_softmax(dim=-1)
-        best_log_new_NF, best_NF = log_new_NFV.max(dim=-1)
+        # log-softmax values only where needed (the readout's maxima and the neighbours' factors), no (F, V) copy
+        logits_NFV = rearrange(logits_NVF, "... V F -> ... F V").float()
+        log_norm_NF1 = logits_NFV.logsumexp(dim=-1, keepdim=True)
+        best_logit_NF, best_NF = logits_NFV.max(dim=-1)
         readout_mode_N = unfactorize_token_ids(best_NF, F_, V)
         # neighbours: their copy mass (summed over the neighbours holding the same token) + the readout's share
         factors_NFK = rearrange(factorize_token_ids(sources_NK.masked_fill(~offered_NK, 0), F_, V),
                                 "... K F -> ... F K")
         mass_NK = _mass_per_value(sources_NK, w_copy_NK)[0]
-        p_neighbour_NK = mass_NK + (log_w_new_N.unsqueeze(-1) + log_new_NFV.gather(-1, factors_NFK).sum(-2)).exp()
+        log_new_NK = (logits_NFV.gather(-1, factors_NFK) - log_norm_NF1).sum(-2)
+        p_neighbour_NK = mass_NK + (log_w_new_N.unsqueeze(-1) + log_new_NK).exp()
         p_neighbour_NK = p_neighbour_NK.masked_fill(~offered_NK, -1.0)
         # the readout's mode: its share + the mass of any neighbour holding it
-        p_readout_N = (log_w_new_N + best_log_new_NF.sum(-1)).exp() + (
+        p_readout_N = (log_w_new_N + (best_logit_NF - log_norm_NF1[..., 0]).sum(-1)).exp() + (
             w_copy_NK * (sources_NK == readout_mode_N.unsqueeze(-1))).sum(-1)
         p_best_neighbour_N, k_N = p_neighbour_NK.max(dim=-1)
         use_neighbour_N = p_best_neighbour_N > p_readout_N
