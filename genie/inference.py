@@ -42,7 +42,7 @@ def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: Temporal
     return model.frames_prediction(x_BTSC, sources_BTSK, with_mode)
 
 
-def frame_slice(prediction, index) -> Prediction:
+def frame_slice(prediction: Prediction, index) -> Prediction:
     """Frames `index` of a `Prediction` of windows (logits (B, V, F, T, H, W), mode (B, T, H, W)): int or slice."""
     return Prediction(prediction.logits[:, :, :, index],
                       *(None if v is None else v[:, index] for v in prediction[1:]))
@@ -180,8 +180,8 @@ def teacher_forced(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperat
 
 
 def stack_frames(predictions) -> Prediction:
-    """Per-frame `Prediction`s (logits (B, V, F, H, W), mode (B, H, W)) -> one of their frames stacked at dim 3
-    of the logits and dim 1 of the mode."""
+    """Per-frame `Prediction`s (logits (B, V, F, H, W), mode (B, H, W)) -> one `Prediction` of all the frames
+    (logits (B, V, F, n, H, W), mode (B, n, H, W))."""
     logits = torch.stack([p.logits for p in predictions], dim=3)
     if predictions[0].mode_ids is None:
         return Prediction(logits)

@@ -50,8 +50,7 @@ def sample_factored_tokens(logits_BVFS: torch.Tensor, temperature: float = 0.0,
 
 
 def maskgit_sample(logits_fn: Callable[[torch.Tensor], Union[torch.Tensor, Prediction]], frame_BHW: torch.Tensor,
-                   mask_token_id: int,
-                   maskgit_steps: int, temperature: float = 0.0, unmask_mode: str = "random",
+                   mask_token_id: int, maskgit_steps: int, temperature: float = 0.0, unmask_mode: str = "random",
                    generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Fill the masked tokens of a batch of frames in `maskgit_steps` steps.
 
