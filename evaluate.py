@@ -59,7 +59,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import add_device_arg, resolve_device, setup_logging
+from common.cli import add_device_arg, add_greedy_tokens_arg, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
 from common.images import psnr, ssim
@@ -122,12 +122,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
                              "when sampling (e^bias times the copy weight). > 0 gives sharper futures closer to "
                              "the previous frame (better LPIPS, lower PSNR); 0 is the model as trained.")
-    parser.add_argument("--greedy_tokens", choices=("joint", "factored"), default="joint",
-                        help="How greedy decoding (--temperature 0) picks each token of a model with a copy "
-                             "head (copy_radius): joint: the most probable whole token of its copy-or-new "
-                             "mixture; factored: each factor's argmax of the per-factor marginals (the earlier "
-                             "behaviour; it can combine two neighbours' factors into a token neither holds). "
-                             "Models without a copy head decode the same either way.")
+    add_greedy_tokens_arg(parser)
     parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
                         help="Which tokens each MaskGIT step reveals: random (published default) or the most "
                              "confident (greedy).")

@@ -46,6 +46,16 @@ def add_device_arg(parser, help: str = "torch device: auto (cuda when available,
     parser.add_argument("--device", type=_device_name, default="auto", help=help, **kwargs)
 
 
+def add_greedy_tokens_arg(parser) -> None:
+    """--greedy_tokens of the scripts that decode with a dynamics model (STMaskGIT.set_joint_greedy)."""
+    parser.add_argument("--greedy_tokens", choices=("joint", "factored"), default="joint",
+                        help="How greedy decoding (--temperature 0) picks each token of a model with a copy head "
+                             "(copy_radius): joint: the most probable whole token of its copy-or-new mixture; "
+                             "factored: each factor's argmax of the per-factor marginals (the earlier behaviour; it "
+                             "can combine two neighbours' factors into a token neither holds). Models without a copy "
+                             "head decode the same either way.")
+
+
 def add_num_threads_arg(parser) -> None:
     parser.add_argument("--num_threads", type=int, default=0,
                         help="CPU threads for torch (0: torch's default); 1 gives steadier, often faster runs of "

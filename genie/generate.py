@@ -28,7 +28,7 @@ import torch
 from einops import rearrange
 from tqdm.auto import tqdm
 
-from common.cli import add_device_arg, resolve_device, setup_logging
+from common.cli import add_device_arg, add_greedy_tokens_arg, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
@@ -75,12 +75,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
                         "(e^bias times the copy weight). > 0 gives sharper futures closer to the previous frame; "
                         "0 is the model as trained.")
-    p.add_argument("--greedy_tokens", choices=("joint", "factored"), default="joint",
-                   help="How greedy decoding (--temperature 0) picks each token of a model with a copy head "
-                        "(copy_radius): joint: the most probable whole token of its copy-or-new mixture; factored: "
-                        "each factor's argmax of the per-factor marginals (the earlier behaviour; it can combine two "
-                        "neighbours' factors into a token neither holds). Models without a copy head decode the "
-                        "same either way.")
+    add_greedy_tokens_arg(p)
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
                    help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
     add_device_arg(p)
