@@ -71,28 +71,7 @@ class CopyHead(nn.Module):
 
     def forward(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor, sources_NK: torch.Tensor) -> torch.Tensor:
         """Readout logits (..., V, F), hidden states (..., C), sources (..., K) -> log-probabilities (..., V, F)."""
-        V, F_ = self.factored_vocab_size, self.num_factored_vocabs
-        offered_NK = sources_NK != self.mask_token_id
-        log_weights = self.log_weights(hidden_NC, offered_NK)
-        w_copy_NK = log_weights[..., :-1].exp()
-        factors_NFK = rearrange(factorize_token_ids(sources_NK.masked_fill(~offered_NK, 0), F_, V),
-                                "... K F -> ... F K")
-        # (F, V) layout: the readout's own memory order, so the softmax runs over contiguous rows
-        log_new_NFV = rearrange(logits_NVF, "... V F -> ... F V").float().log_softmax(dim=-1)
-        in_place = not torch.is_grad_enabled()  # inference: no autograd graph needs the intermediates kept
-        log_new_NFV = (log_new_NFV.add_ if in_place else log_new_NFV.add)(log_weights[..., -1, None, None])
-        # Only the <= K values some neighbour holds get copy mass; every other value keeps log_new. A dropped
-        # neighbour points at value 0 with weight 0, which leaves value 0's result unchanged.
-        mass_NFK, repeated_NFK = _mass_per_value(factors_NFK, w_copy_NK.unsqueeze(-2).expand_as(factors_NFK))
-        # log(0) of a dropped neighbour's value is clamped: finite, and no gradient flows through the clamp
-        mixed_NFK = torch.logaddexp(log_new_NFV.gather(-1, factors_NFK), mass_NFK.clamp_min(1e-30).log())
-        if in_place:
-            return rearrange(log_new_NFV.scatter_(-1, factors_NFK, mixed_NFK), "... F V -> ... V F")
-        # Neighbours holding the same value write the same number into its slot; only one of them keeps its
-        # gradient, so that the value's gradient is counted once.
-        mixed_NFK = torch.where(repeated_NFK, mixed_NFK.detach(), mixed_NFK)
-        return rearrange(log_new_NFV.scatter(-1, factors_NFK, mixed_NFK), "... F V -> ... V F")
-
+        return self._mixture(*self._parts(logits_NVF, hidden_NC, sources_NK))
 
     @torch.no_grad()
     def mode(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor,
@@ -107,24 +86,58 @@ class CopyHead(nn.Module):
         so its mode is one of the offered neighbours' tokens or the readout's own factor-wise mode (every other
         token has no copy mass and a lower readout probability).
         """
+        return self._mode(sources_NK, *self._parts(logits_NVF, hidden_NC, sources_NK))
+
+    @torch.no_grad()
+    def forward_and_mode(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor,
+                         sources_NK: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`forward` and `mode` (inference) from one computation of their shared parts."""
+        parts = self._parts(logits_NVF, hidden_NC, sources_NK)
+        ids_N, probs_N = self._mode(sources_NK, *parts)  # first: the mixture overwrites the readout's log-probs
+        return self._mixture(*parts), ids_N, probs_N
+
+    def _parts(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor, sources_NK: torch.Tensor):
+        """What the mixture and its mode are computed from: which neighbours are offered (..., K), the log weights
+        (..., K + 1), the neighbours' factors (..., F, K) and the readout's log-probabilities (..., F, V)."""
         V, F_ = self.factored_vocab_size, self.num_factored_vocabs
         offered_NK = sources_NK != self.mask_token_id
-        log_weights = self.log_weights(hidden_NC, offered_NK)
-        w_copy_NK, log_w_new_N = log_weights[..., :-1].exp(), log_weights[..., -1]
-        # log-softmax values only where needed (the readout's maxima and the neighbours' factors), no (F, V) copy
-        logits_NFV = rearrange(logits_NVF, "... V F -> ... F V").float()
-        log_norm_NF1 = logits_NFV.logsumexp(dim=-1, keepdim=True)
-        best_logit_NF, best_NF = logits_NFV.max(dim=-1)
-        readout_mode_N = unfactorize_token_ids(best_NF, F_, V)
-        # neighbours: their copy mass (summed over the neighbours holding the same token) + the readout's share
         factors_NFK = rearrange(factorize_token_ids(sources_NK.masked_fill(~offered_NK, 0), F_, V),
                                 "... K F -> ... F K")
+        # (F, V) layout: the readout's own memory order, so the softmax runs over contiguous rows
+        log_new_NFV = rearrange(logits_NVF, "... V F -> ... F V").float().log_softmax(dim=-1)
+        return offered_NK, self.log_weights(hidden_NC, offered_NK), factors_NFK, log_new_NFV
+
+    def _mixture(self, offered_NK: torch.Tensor, log_weights: torch.Tensor, factors_NFK: torch.Tensor,
+                 log_new_NFV: torch.Tensor) -> torch.Tensor:
+        """The mixture's log-probabilities (..., V, F) from `_parts` (at inference log_new_NFV is reused in place)."""
+        w_copy_NK = log_weights[..., :-1].exp()
+        in_place = not torch.is_grad_enabled()  # inference: no autograd graph needs the intermediates kept
+        log_new_NFV = (log_new_NFV.add_ if in_place else log_new_NFV.add)(log_weights[..., -1, None, None])
+        # Only the <= K values some neighbour holds get copy mass; every other value keeps log_new. A dropped
+        # neighbour points at value 0 with weight 0, which leaves value 0's result unchanged.
+        mass_NFK, repeated_NFK = _mass_per_value(factors_NFK, w_copy_NK.unsqueeze(-2).expand_as(factors_NFK))
+        # log(0) of a dropped neighbour's value is clamped: finite, and no gradient flows through the clamp
+        mixed_NFK = torch.logaddexp(log_new_NFV.gather(-1, factors_NFK), mass_NFK.clamp_min(1e-30).log())
+        if in_place:
+            return rearrange(log_new_NFV.scatter_(-1, factors_NFK, mixed_NFK), "... F V -> ... V F")
+        # Neighbours holding the same value write the same number into its slot; only one of them keeps its
+        # gradient, so that the value's gradient is counted once.
+        mixed_NFK = torch.where(repeated_NFK, mixed_NFK.detach(), mixed_NFK)
+        return rearrange(log_new_NFV.scatter(-1, factors_NFK, mixed_NFK), "... F V -> ... V F")
+
+    def _mode(self, sources_NK: torch.Tensor, offered_NK: torch.Tensor, log_weights: torch.Tensor,
+              factors_NFK: torch.Tensor, log_new_NFV: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """`mode` from the sources (..., K) and `_parts`."""
+        V, F_ = self.factored_vocab_size, self.num_factored_vocabs
+        w_copy_NK, log_w_new_N = log_weights[..., :-1].exp(), log_weights[..., -1]
+        best_log_new_NF, best_NF = log_new_NFV.max(dim=-1)
+        readout_mode_N = unfactorize_token_ids(best_NF, F_, V)
+        # neighbours: their copy mass (summed over the neighbours holding the same token) + the readout's share
         mass_NK = _mass_per_value(sources_NK, w_copy_NK)[0]
-        log_new_NK = (logits_NFV.gather(-1, factors_NFK) - log_norm_NF1).sum(-2)
-        p_neighbour_NK = mass_NK + (log_w_new_N.unsqueeze(-1) + log_new_NK).exp()
-        p_neighbour_NK = p_neighbour_NK.masked_fill(~offered_NK, -1.0)
+        log_new_NK = log_new_NFV.gather(-1, factors_NFK).sum(-2)
+        p_neighbour_NK = (mass_NK + (log_w_new_N.unsqueeze(-1) + log_new_NK).exp()).masked_fill(~offered_NK, -1.0)
         # the readout's mode: its share + the mass of any neighbour holding it
-        p_readout_N = (log_w_new_N + (best_logit_NF - log_norm_NF1[..., 0]).sum(-1)).exp() + (
+        p_readout_N = (log_w_new_N + best_log_new_NF.sum(-1)).exp() + (
             w_copy_NK * (sources_NK == readout_mode_N.unsqueeze(-1))).sum(-1)
         p_best_neighbour_N, k_N = p_neighbour_NK.max(dim=-1)
         use_neighbour_N = p_best_neighbour_N > p_readout_N

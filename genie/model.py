@@ -191,10 +191,9 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             return Prediction(logits)
         if sources_NK is None:
             raise ValueError("this model copies from the previous frame (copy_radius is set): pass copy_sources")
-        mixed = self.copy_head(logits, x_NC, sources_NK)
         if not (with_mode and self.joint_greedy):
-            return Prediction(mixed)
-        return Prediction(mixed, *self.copy_head.mode(logits, x_NC, sources_NK))
+            return Prediction(self.copy_head(logits, x_NC, sources_NK))
+        return Prediction(*self.copy_head.forward_and_mode(logits, x_NC, sources_NK))
 
     def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
                latent_actions: Optional[torch.Tensor] = None,
