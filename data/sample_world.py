@@ -29,13 +29,15 @@ Usage:
     python -m data.sample_world --output_dir data/sample/raw --seed 0
 """
 import argparse
-import contextlib
 import dataclasses
 import json
 import math
 import multiprocessing
 import os
+import shutil
 import struct
+import sys
+import tempfile
 import time
 import zlib
 from collections import deque
@@ -57,6 +59,7 @@ HELDOUT_MAPS = ("MAP18",)
 MAX_STEP = 30.0  # map units per tic; Doom caps momentum here, so a longer step is a teleport
 GENERATOR_VERSION = 1  # bump when a change in this file changes the generated data
 SIDECAR_NAME = "sample_world.json"
+STALL_TIMEOUT_S = 600.0  # seconds without a finished task before a worker pool is declared stuck (a task: ~5 s)
 
 # Macro actions of the explorer: which buttons each one holds (order of BUTTON_NAMES).
 _ACTIONS = {
@@ -242,12 +245,18 @@ def check_maps(maps: Sequence[str]):
         raise ValueError(f"unknown map(s) {unknown or '(none given)'}: {wad} has {known[0]}..{known[-1]}")
 
 
-def make_game(map_name: str, cfg: WorldConfig):
-    """A headless ViZDoom game on `map_name` of the bundled freedoom2.wad: no monsters, HUD, weapon or sound."""
+def make_game(map_name: str, cfg: WorldConfig, workdir: Optional[str] = None):
+    """A headless ViZDoom game on `map_name` of the bundled freedoom2.wad: no monsters, HUD, weapon or sound.
+
+    The engine writes _vizdoom.ini and a _vizdoom/ folder into its working directory: `workdir` (default: the
+    current one) gives it a private one, so that engines started at the same moment do not race to create them.
+    """
     import vizdoom as vzd
 
     check_maps([map_name])
     game = vzd.DoomGame()
+    if workdir is not None:
+        game.set_doom_config_path(os.path.join(workdir, "_vizdoom.ini"))
     game.set_doom_game_path(_wad_path())
     game.set_doom_map(map_name)
     game.set_screen_resolution(vzd.ScreenResolution.RES_160X120)
@@ -268,10 +277,15 @@ def make_game(map_name: str, cfg: WorldConfig):
     game.set_episode_timeout(0)
     # -deathmatch: random spawn spot per episode seed (and no monsters); cheats allow god mode.
     game.add_game_args("-deathmatch -nomonsters +sv_cheats 1 +cl_showsecretmessage 0")
+    cwd = os.getcwd()
     try:
+        if workdir is not None:
+            os.chdir(workdir)  # the engine process inherits it at init; nothing else runs meanwhile
         game.init()
     except Exception as e:  # ViZDoom raises its own types; name the map in the message
         raise RuntimeError(f"ViZDoom could not start map {map_name!r} of freedoom2.wad: {e}") from e
+    finally:
+        os.chdir(cwd)
     return game
 
 
@@ -385,19 +399,53 @@ def _run_task(task) -> list:
     """
     map_name, split, seed, episodes, episode_len, cfg_dict = task
     cfg = WorldConfig(**cfg_dict)
-    game = make_game(map_name, cfg)
+    workdir = tempfile.mkdtemp(prefix="vizdoom.")
     results = []
     try:
-        for episode in episodes:
-            for attempt in range(cfg.max_attempts):
-                ep_seed = episode_seed(seed, split, map_name, episode, attempt)
-                ep = run_episode(game, episode_len, ep_seed, cfg)
-                if is_good_episode(ep, episode_len, cfg):
-                    break
-            results.append({**ep, "seed": ep_seed})
+        game = make_game(map_name, cfg, workdir=workdir)
+        try:
+            for episode in episodes:
+                for attempt in range(cfg.max_attempts):
+                    ep_seed = episode_seed(seed, split, map_name, episode, attempt)
+                    ep = run_episode(game, episode_len, ep_seed, cfg)
+                    if is_good_episode(ep, episode_len, cfg):
+                        break
+                results.append({**ep, "seed": ep_seed})
+        finally:
+            game.close()
     finally:
-        game.close()
+        shutil.rmtree(workdir, ignore_errors=True)
     return results
+
+
+def map_in_order(fn, tasks: list, workers: int, stall_timeout_s: float = STALL_TIMEOUT_S):
+    """Yield fn(task) for each task, in order, computed by `workers` processes.
+
+    A worker that dies (a crash in the engine) or whose engine stops answering would leave multiprocessing's
+    imap waiting forever. Here, when the next result takes longer than `stall_timeout_s`, the pool is killed and
+    the tasks not yet yielded rerun in a fresh pool (a task's result depends only on its arguments); a second stall
+    raises RuntimeError. Exceptions raised by fn propagate unchanged.
+    """
+    done = 0
+    for attempt in range(2):
+        pool = multiprocessing.Pool(workers)  # the default start method (fork on Linux: no re-import of `data`)
+        try:
+            pending = [pool.apply_async(fn, (task,)) for task in tasks[done:]]
+            for result in pending:
+                value = result.get(timeout=stall_timeout_s)
+                done += 1
+                yield value
+            return
+        except multiprocessing.TimeoutError:
+            if attempt == 1:
+                raise RuntimeError(f"task {done + 1} of {len(tasks)} gave no result in {stall_timeout_s:.0f} s, "
+                                   f"twice: a worker died or its ViZDoom engine hangs") from None
+            print(f"WARNING: task {done + 1} of {len(tasks)} gave no result in {stall_timeout_s:.0f} s (a worker "
+                  f"died or its engine hangs); restarting the workers for the {len(tasks) - done} tasks left",
+                  file=sys.stderr)
+        finally:
+            pool.terminate()
+            pool.join()
 
 
 def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int, seed: int, *,
@@ -421,10 +469,9 @@ def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int,
     # Frames go straight into one preallocated buffer: the split may be several GB, so never hold it twice.
     frames = np.empty((len(episode_maps) * episode_len, cfg.frame_size, cfg.frame_size, 3), dtype=np.uint8)
     num_frames, episodes = 0, []
-    # The platform's default start method (fork on Linux: workers skip re-importing torch via `data`).
-    pool = multiprocessing.Pool(workers) if workers > 1 else contextlib.nullcontext()
-    with pool, tqdm(total=len(episode_maps), desc=f"sample world {split}", unit="episode", disable=not progress) as bar:
-        for result in (pool.imap(_run_task, tasks) if workers > 1 else map(_run_task, tasks)):
+    results = map_in_order(_run_task, tasks, workers) if workers > 1 else map(_run_task, tasks)
+    with tqdm(total=len(episode_maps), desc=f"sample world {split}", unit="episode", disable=not progress) as bar:
+        for result in results:
             for ep in result:
                 n = len(ep["frames"])
                 frames[num_frames: num_frames + n] = ep.pop("frames")

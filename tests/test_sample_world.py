@@ -1,6 +1,8 @@
 """Tests of the ViZDoom sample-world generator: layout, action meaning, determinism, split disjointness, CLI."""
 import json
+import os
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -116,12 +118,59 @@ def test_same_seed_is_byte_identical_and_seeds_differ():
     assert a["frames"].tobytes() != c["frames"].tobytes()
 
 
-def test_workers_do_not_change_the_result():
+def test_workers_do_not_change_the_result(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     kwargs = dict(maps=("MAP04",), episodes_per_map=2, episode_len=40, seed=0, cfg=FAST, progress=False,
                   episodes_per_task=1)
     one, two = sw.generate_split(workers=1, **kwargs), sw.generate_split(workers=2, **kwargs)
     for key in ("frames", "segment_ids", "actions_buttons", "actions_driving_command"):
         assert one[key].tobytes() == two[key].tobytes(), key
+    # each engine keeps its _vizdoom.ini and _vizdoom/ in a private folder: engines started together in one
+    # folder race to create them, and the user's working directory stays clean
+    assert os.listdir(tmp_path) == []
+    assert os.getcwd() == str(tmp_path)
+
+
+def _claim(marker: str) -> bool:
+    """True for the first caller only (across processes)."""
+    try:
+        os.close(os.open(marker, os.O_CREAT | os.O_EXCL))
+        return True
+    except FileExistsError:
+        return False
+
+
+def _fail_once(task):
+    """Return `value`; a task with `how` set hangs or kills its worker the first time any worker runs it."""
+    marker, value, how = task
+    if how and _claim(marker):
+        if how == "hang":
+            time.sleep(60)
+        os._exit(1)
+    return value
+
+
+def _hang(task):
+    time.sleep(60)
+
+
+def _raise(task):
+    raise ValueError(f"bad task {task}")
+
+
+@pytest.mark.parametrize("how", ["hang", "die"])
+def test_map_in_order_reruns_the_tasks_of_a_stuck_or_dead_worker(tmp_path, capsys, how):
+    marker = str(tmp_path / "claimed")
+    tasks = [(marker, i, how if i == 2 else None) for i in range(5)]
+    assert list(sw.map_in_order(_fail_once, tasks, workers=2, stall_timeout_s=2)) == list(range(5))
+    assert "task 3 of 5 gave no result" in capsys.readouterr().err
+
+
+def test_map_in_order_gives_up_on_a_second_stall_and_passes_errors_through():
+    with pytest.raises(RuntimeError, match="task 1 of 2 gave no result in 1 s, twice"):
+        list(sw.map_in_order(_hang, [0, 1], workers=2, stall_timeout_s=1))
+    with pytest.raises(ValueError, match="bad task 0"):
+        list(sw.map_in_order(_raise, [0, 1], workers=2))
 
 
 def test_train_and_val_are_disjoint():
