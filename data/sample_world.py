@@ -34,7 +34,6 @@ import json
 import math
 import multiprocessing
 import os
-import shutil
 import struct
 import sys
 import tempfile
@@ -399,9 +398,8 @@ def _run_task(task) -> list:
     """
     map_name, split, seed, episodes, episode_len, cfg_dict = task
     cfg = WorldConfig(**cfg_dict)
-    workdir = tempfile.mkdtemp(prefix="vizdoom.")
     results = []
-    try:
+    with tempfile.TemporaryDirectory(prefix="vizdoom.", ignore_cleanup_errors=True) as workdir:
         game = make_game(map_name, cfg, workdir=workdir)
         try:
             for episode in episodes:
@@ -413,8 +411,6 @@ def _run_task(task) -> list:
                 results.append({**ep, "seed": ep_seed})
         finally:
             game.close()
-    finally:
-        shutil.rmtree(workdir, ignore_errors=True)
     return results
 
 
