@@ -52,6 +52,7 @@ from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset
 from genie.masking import MaskGITBatch, get_maskgit_collator
 from genie.model import STMaskGIT
 from common.files import remove_stale_temp_dirs
+from common.muon import MuonAdamW
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, load_training_checkpoint, prune_checkpoints, resolve_resume_path,
                                restore_rng_state, resume_hint, save_training_checkpoint)
@@ -109,8 +110,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--per_device_train_batch_size", type=int, default=4, help="Windows per process per micro-batch.")
     g.add_argument("--per_device_eval_batch_size", type=int, default=4, help="Windows per process per eval batch.")
     g.add_argument("--gradient_accumulation_steps", type=int, default=1, help="Micro-batches per optimizer step.")
-    g.add_argument("--learning_rate", type=float, default=1e-4, help="Peak learning rate (AdamW).")
-    g.add_argument("--weight_decay", type=float, default=0.0, help="AdamW weight decay (matrices only).")
+    g.add_argument("--optimizer", default="adamw", choices=("adamw", "muon"),
+                   help="adamw, or muon: Muon steps (orthogonalized momentum, scaled to AdamW's step size) for the "
+                        "transformer's hidden matrices and AdamW for embeddings, heads, biases and norms, with the "
+                        "same learning rate, schedule and weight decay (common/muon.py).")
+    g.add_argument("--muon_momentum", type=float, default=0.95, help="Muon's (Nesterov) momentum.")
+    g.add_argument("--learning_rate", type=float, default=1e-4, help="Peak learning rate (AdamW, and Muon's).")
+    g.add_argument("--weight_decay", type=float, default=0.0,
+                   help="Decoupled weight decay (matrices and embeddings only).")
     g.add_argument("--adam_beta_1", type=float, default=0.9, help="AdamW beta1.")
     g.add_argument("--adam_beta_2", type=float, default=0.999, help="AdamW beta2.")
     g.add_argument("--adam_eps", type=float, default=1e-8, help="AdamW epsilon.")
@@ -236,13 +243,21 @@ def build_model(config: GenieConfig, warmstart_path) -> STMaskGIT:
     return model
 
 
-def build_optimizer(model, args, fused: bool) -> torch.optim.AdamW:
-    """AdamW; weight decay on matrices and embeddings only (nanoGPT), not on biases and norm weights."""
+def build_optimizer(model, args, fused: bool) -> torch.optim.Optimizer:
+    """AdamW, or Muon for the transformer's hidden matrices and AdamW for the rest (`--optimizer muon`); weight decay
+    on matrices and embeddings only (nanoGPT), not on biases and norm weights."""
     params = [p for p in model.parameters() if p.requires_grad]
-    groups = [{"params": [p for p in params if p.dim() >= 2], "weight_decay": args.weight_decay},
+    betas = (args.adam_beta_1, args.adam_beta_2)
+    if args.optimizer == "adamw":
+        groups = [{"params": [p for p in params if p.dim() >= 2], "weight_decay": args.weight_decay},
+                  {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
+        return torch.optim.AdamW(groups, lr=args.learning_rate, betas=betas, eps=args.adam_eps, fused=fused or None)
+    hidden = {id(p) for p in model.decoder.parameters() if p.dim() == 2}
+    groups = [{"params": [p for p in params if id(p) in hidden], "weight_decay": args.weight_decay, "muon": True},
+              {"params": [p for p in params if p.dim() >= 2 and id(p) not in hidden],
+               "weight_decay": args.weight_decay},
               {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
-    return torch.optim.AdamW(groups, lr=args.learning_rate, betas=(args.adam_beta_1, args.adam_beta_2),
-                             eps=args.adam_eps, fused=fused or None)
+    return MuonAdamW(groups, lr=args.learning_rate, betas=betas, eps=args.adam_eps, momentum=args.muon_momentum)
 
 
 def batch_seed(*keys: int) -> int:
@@ -355,6 +370,10 @@ class Trainer:
         if differing:
             raise TrainingStateError(f"{path / 'config.json'}: the checkpoint's model config differs from "
                                      f"--genie_config in {differing}")
+        saved_optimizer = ckpt["trainer"].get("args", {}).get("optimizer", "adamw")
+        if saved_optimizer != self.args.optimizer:
+            raise TrainingStateError(f"{path}: the run was trained with --optimizer {saved_optimizer}, not "
+                                     f"{self.args.optimizer}; resume it with the same optimizer")
         load_model(self.model, str(ckpt["model_path"]), device=str(self.device))
         self.optimizer.load_state_dict(ckpt["optimizer"])
         state = ckpt["trainer"]

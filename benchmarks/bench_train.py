@@ -3,11 +3,12 @@
     python benchmarks/bench_train.py --device cpu          # 8 layers, d_model 256, T 16, 16x16, batch 2, fp32, CPU
     python benchmarks/bench_train.py --mixed_precision compare  # fp32 vs CPU bf16 autocast (avx512_bf16 / AMX)
     python benchmarks/bench_train.py --readout compare          # logits of every token vs of the masked ones only
+    python benchmarks/bench_train.py --optimizer compare        # AdamW vs Muon + AdamW (train.py --optimizer)
     python benchmarks/bench_train.py --genie_config genie/configs/sample_world.json --profile   # the CPU default
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
 
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
-gradient clipping and AdamW; with --genie_config, under that config's training recipe (--recipe) and, for a model
+gradient clipping and the optimizer train.py builds (AdamW unless --optimizer muon); with --genie_config, under that config's training recipe (--recipe) and, for a model
 with action inputs, with random action streams. Tokens per step = batch * T * S. The published implementation trains this shape at
 ~1,840 tokens/s on the project's 2-core CPU (fp32, batch 2); the ratio to that figure is printed (it is only
 meaningful for that shape on that machine).
@@ -25,6 +26,7 @@ from genie.attention import set_cpu_bf16_math
 from genie.config import GenieConfig, TrainingRecipe
 from genie.model import STMaskGIT
 from genie.reference import full_logits_loss
+from train import build_optimizer
 
 PUBLISHED_TOKENS_PER_S = 1840.0
 
@@ -56,6 +58,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--readout", default="masked", choices=("masked", "full", "compare"),
                    help="masked: the loss reads out only the masked tokens it counts (what train.py does); full: "
                         "logits of every token, as published; compare: full, then masked, with the ratio.")
+    p.add_argument("--optimizer", default="adamw", choices=("adamw", "muon", "compare"),
+                   help="The optimizer train.py builds with --optimizer adamw / muon; compare: both, with the ratio.")
     p.add_argument("--compile", action="store_true", help="torch.compile the model.")
     add_num_threads_arg(p)
     p.add_argument("--profile", action="store_true", help="Print the top operators of one profiled step.")
@@ -80,7 +84,7 @@ def make_step(model, optimizer, collate, windows, device, mixed_precision, full_
     return step
 
 
-def build(args, device):
+def build(args, device, optimizer_name: str = "adamw"):
     recipe = TrainingRecipe()
     if args.genie_config:
         config = GenieConfig.from_pretrained(args.genie_config)
@@ -93,7 +97,9 @@ def build(args, device):
     model = STMaskGIT(config)
     model.init_weights()
     model.to(device).train()
-    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4, fused=device.type == "cuda" or None)
+    hyper = argparse.Namespace(optimizer=optimizer_name, learning_rate=1e-4, weight_decay=0.0, adam_beta_1=0.9,
+                               adam_beta_2=0.999, adam_eps=1e-8, muon_momentum=0.95)
+    optimizer = build_optimizer(model, hyper, fused=device.type in ("cuda", "cpu"))
     generator = torch.Generator().manual_seed(0)
     windows = [{"tokens": torch.randint(0, config.image_vocab_size, (config.T, config.H, config.W),
                                         generator=generator),
@@ -113,9 +119,10 @@ def random_action_streams(config: GenieConfig, generator: torch.Generator) -> di
     return streams
 
 
-def measure(args, device, mixed_precision: str, math_path: bool, full_readout: bool = False) -> float:
+def measure(args, device, mixed_precision: str, math_path: bool, full_readout: bool = False,
+            optimizer_name: str = "adamw") -> float:
     """Seconds per optimizer step (wall) of a freshly built model; prints one line."""
-    config, recipe, model, optimizer, windows = build(args, device)
+    config, recipe, model, optimizer, windows = build(args, device, optimizer_name)
     set_cpu_bf16_math(model, math_path)
     compiled = torch.compile(model) if args.compile else model
     step = make_step(compiled, optimizer, get_maskgit_collator(config, recipe, seed=0), windows, device,
@@ -131,6 +138,7 @@ def measure(args, device, mixed_precision: str, math_path: bool, full_readout: b
     label = "fp32" if mixed_precision == "no" else "bf16" if device.type != "cpu" else \
         f"bf16 ({'written-out temporal' if math_path else 'fused'} attention)"
     label += ", all logits" if full_readout else ""
+    label += ", Muon + AdamW" if optimizer_name == "muon" else ""
     print(f"{label:>42}: {seconds:.3f} s/step (process CPU time {cpu_seconds:.3f} s/step), "
           f"{tokens_per_s:,.0f} tokens/s, {tokens_per_s / PUBLISHED_TOKENS_PER_S:.2f}x the published "
           f"{PUBLISHED_TOKENS_PER_S:,.0f} tokens/s", flush=True)
@@ -143,8 +151,8 @@ def measure(args, device, mixed_precision: str, math_path: bool, full_readout: b
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    if args.readout == "compare" and args.mixed_precision == "compare":
-        raise SystemExit("bench_train.py: compare one thing at a time (--readout compare or --mixed_precision compare)")
+    if [args.readout, args.mixed_precision, args.optimizer].count("compare") > 1:
+        raise SystemExit("bench_train.py: compare one thing at a time (--readout, --mixed_precision or --optimizer)")
     device = resolve_device(args.device)
     apply_num_threads(args.num_threads)
     config, recipe, model = build(args, device)[:3]
@@ -156,8 +164,14 @@ def main(argv=None) -> None:
         masked = measure(args, device, args.mixed_precision, math_path=True)
         print(f"masked-token readout vs all logits: {full / masked:.2f}x")
         return
+    if args.optimizer == "compare":
+        adamw = measure(args, device, args.mixed_precision, math_path=True)
+        muon = measure(args, device, args.mixed_precision, math_path=True, optimizer_name="muon")
+        print(f"Muon + AdamW vs AdamW: {adamw / muon:.2f}x")
+        return
     if args.mixed_precision != "compare":
-        measure(args, device, args.mixed_precision, math_path=True, full_readout=args.readout == "full")
+        measure(args, device, args.mixed_precision, math_path=True, full_readout=args.readout == "full",
+                optimizer_name=args.optimizer)
         return
     fp32 = measure(args, device, "no", math_path=True)
     runs = {"fused": measure(args, device, "bf16", math_path=False),

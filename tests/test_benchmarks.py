@@ -33,6 +33,14 @@ def test_bench_train_readout_compare_runs_both_readouts(capsys):
     assert "fp32, all logits:" in out and "masked-token readout vs all logits:" in out
 
 
+def test_bench_train_optimizer_compare_steps_both_optimizers(capsys):
+    load("bench_train").main(["--num_layers", "1", "--d_model", "32", "--num_heads", "2", "--s", "4", "--T", "10",
+                              "--image_vocab_size", "4096", "--steps", "1", "--warmup_steps", "0",
+                              "--optimizer", "compare"])
+    out = capsys.readouterr().out
+    assert "fp32:" in out and "fp32, Muon + AdamW:" in out and "Muon + AdamW vs AdamW:" in out
+
+
 def test_bench_copy_head_times_three_mixtures_that_agree(capsys):
     load("bench_copy_head").main(["--num_tokens", "16", "--d_model", "8", "--repeats", "1", "--radius", "1"])
     out = capsys.readouterr().out
