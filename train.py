@@ -52,7 +52,7 @@ from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset
 from genie.masking import MaskGITBatch, get_maskgit_collator
 from genie.model import STMaskGIT
 from common.files import remove_stale_temp_dirs
-from common.muon import MuonAdamW
+from common import muon
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, load_training_checkpoint, prune_checkpoints, resolve_resume_path,
                                restore_rng_state, resume_hint, save_training_checkpoint)
@@ -244,20 +244,11 @@ def build_model(config: GenieConfig, warmstart_path) -> STMaskGIT:
 
 
 def build_optimizer(model, args, fused: bool) -> torch.optim.Optimizer:
-    """AdamW, or Muon for the transformer's hidden matrices and AdamW for the rest (`--optimizer muon`); weight decay
-    on matrices and embeddings only (nanoGPT), not on biases and norm weights."""
-    params = [p for p in model.parameters() if p.requires_grad]
-    betas = (args.adam_beta_1, args.adam_beta_2)
-    if args.optimizer == "adamw":
-        groups = [{"params": [p for p in params if p.dim() >= 2], "weight_decay": args.weight_decay},
-                  {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
-        return torch.optim.AdamW(groups, lr=args.learning_rate, betas=betas, eps=args.adam_eps, fused=fused or None)
-    hidden = {id(p) for p in model.decoder.parameters() if p.dim() == 2}
-    groups = [{"params": [p for p in params if id(p) in hidden], "weight_decay": args.weight_decay, "muon": True},
-              {"params": [p for p in params if p.dim() >= 2 and id(p) not in hidden],
-               "weight_decay": args.weight_decay},
-              {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
-    return MuonAdamW(groups, lr=args.learning_rate, betas=betas, eps=args.adam_eps, momentum=args.muon_momentum)
+    """--optimizer over the model: AdamW, or Muon for the transformer's hidden matrices and AdamW for the rest."""
+    return muon.build_optimizer(model.parameters(), model.decoder.parameters(), args.optimizer,
+                                lr=args.learning_rate, weight_decay=args.weight_decay,
+                                betas=(args.adam_beta_1, args.adam_beta_2), eps=args.adam_eps,
+                                momentum=args.muon_momentum, fused=fused)
 
 
 def batch_seed(*keys: int) -> int:

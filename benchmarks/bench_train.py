@@ -8,9 +8,9 @@
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
 
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
-gradient clipping and the optimizer train.py builds (AdamW unless --optimizer muon); with --genie_config, under that config's training recipe (--recipe) and, for a model
-with action inputs, with random action streams. Tokens per step = batch * T * S. The published implementation trains this shape at
-~1,840 tokens/s on the project's 2-core CPU (fp32, batch 2); the ratio to that figure is printed (it is only
+gradient clipping and the optimizer train.py builds (AdamW unless --optimizer muon); with --genie_config, under that
+config's training recipe (--recipe) and, for a model with action inputs, with random action streams. Tokens per
+step = batch * T * S. The published implementation trains this shape at ~1,840 tokens/s on the project's 2-core CPU (fp32, batch 2); the ratio to that figure is printed (it is only
 meaningful for that shape on that machine).
 """
 import argparse
@@ -20,13 +20,13 @@ from typing import Optional
 import torch
 
 from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device
+from common.muon import build_optimizer
 from genie.actions import LATENT_ACTION_NAME
 from genie.masking import get_maskgit_collator
 from genie.attention import set_cpu_bf16_math
 from genie.config import GenieConfig, TrainingRecipe
 from genie.model import STMaskGIT
 from genie.reference import full_logits_loss
-from train import build_optimizer
 
 PUBLISHED_TOKENS_PER_S = 1840.0
 
@@ -97,9 +97,8 @@ def build(args, device, optimizer_name: str = "adamw"):
     model = STMaskGIT(config)
     model.init_weights()
     model.to(device).train()
-    hyper = argparse.Namespace(optimizer=optimizer_name, learning_rate=1e-4, weight_decay=0.0, adam_beta_1=0.9,
-                               adam_beta_2=0.999, adam_eps=1e-8, muon_momentum=0.95)
-    optimizer = build_optimizer(model, hyper, fused=device.type in ("cuda", "cpu"))
+    optimizer = build_optimizer(model.parameters(), model.decoder.parameters(), optimizer_name, lr=1e-4,
+                                weight_decay=0.0, fused=device.type in ("cuda", "cpu"))  # as train.py builds it
     generator = torch.Generator().manual_seed(0)
     windows = [{"tokens": torch.randint(0, config.image_vocab_size, (config.T, config.H, config.W),
                                         generator=generator),

@@ -11,6 +11,7 @@ Embeddings, output heads, biases and norms stay on AdamW: they are not linear ma
 what the orthogonalization assumes.
 """
 import math
+from typing import Iterable
 
 import torch
 
@@ -86,3 +87,26 @@ class MuonAdamW(torch.optim.Optimizer):
         state["exp_avg_sq"].mul_(beta2).addcmul_(p.grad, p.grad, value=1 - beta2)
         denom = (state["exp_avg_sq"].sqrt() / math.sqrt(1 - beta2 ** t)).add_(group["eps"])
         p.addcdiv_(state["exp_avg"], denom, value=-group["lr"] / (1 - beta1 ** t))
+
+
+def build_optimizer(params: Iterable[torch.nn.Parameter], hidden_matrices: Iterable[torch.nn.Parameter], name: str,
+                    lr: float, weight_decay: float, betas=(0.9, 0.999), eps: float = 1e-8, momentum: float = 0.95,
+                    fused: bool = False) -> torch.optim.Optimizer:
+    """The optimizer `train.py --optimizer` names, over the trainable `params`.
+
+    "adamw": torch's AdamW (`fused` uses its fused kernel); "muon": MuonAdamW, Muon for `hidden_matrices` (2-D
+    parameters among `params`) and AdamW for the rest. Weight decay applies to parameters with >= 2 dimensions
+    (matrices and embeddings, as nanoGPT does), never to biases and norm weights.
+    """
+    params = [p for p in params if p.requires_grad]
+    if name == "adamw":
+        groups = [{"params": [p for p in params if p.dim() >= 2], "weight_decay": weight_decay},
+                  {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
+        return torch.optim.AdamW(groups, lr=lr, betas=betas, eps=eps, fused=fused or None)
+    if name != "muon":
+        raise ValueError(f"unknown optimizer {name!r}: use adamw or muon")
+    hidden = {id(p) for p in hidden_matrices if p.dim() == 2}
+    groups = [{"params": [p for p in params if id(p) in hidden], "weight_decay": weight_decay, "muon": True},
+              {"params": [p for p in params if p.dim() >= 2 and id(p) not in hidden], "weight_decay": weight_decay},
+              {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
+    return MuonAdamW(groups, lr=lr, betas=betas, eps=eps, momentum=momentum)

@@ -1,7 +1,11 @@
 """The benchmark scripts still run (tiny shapes): they are how speed claims in the README are reproduced."""
 import importlib.util
 import json
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -11,6 +15,14 @@ def load(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in BENCHMARKS.glob("bench_*.py")))
+def test_benchmark_scripts_start_from_any_directory(script, tmp_path):
+    """Run as `python benchmarks/X.py`, a script sees only its own folder and the installed packages."""
+    done = subprocess.run([sys.executable, str(BENCHMARKS / script), "--help"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
 
 
 def test_bench_train_compare_runs_fp32_and_both_bf16_attention_paths(capsys):

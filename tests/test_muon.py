@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import train
-from common.muon import MuonAdamW, orthogonalize
+from common.muon import MuonAdamW, build_optimizer, orthogonalize
 from common.train_state import load_training_checkpoint
 from tests.test_train import assert_same_weights, load_weights, masked_val_loss, tiny_data, train_argv  # noqa: F401
 from genie import GenieConfig, STMaskGIT
@@ -65,6 +65,17 @@ def test_muon_step_is_the_scaled_orthogonalized_momentum():
 def test_muon_groups_take_only_matrices():
     with pytest.raises(ValueError, match="2-D"):
         MuonAdamW([{"params": [torch.nn.Parameter(torch.zeros(4))], "muon": True}])
+
+
+def test_build_optimizer_groups():
+    hidden, embed, bias = (torch.nn.Parameter(torch.zeros(shape)) for shape in ((4, 3), (5, 3), (3,)))
+    muon = build_optimizer([hidden, embed, bias], [hidden, bias], "muon", lr=1e-2, weight_decay=0.1)
+    assert [(g.get("muon", False), len(g["params"]), g["weight_decay"]) for g in muon.param_groups] == [
+        (True, 1, 0.1), (False, 1, 0.1), (False, 1, 0.0)]  # 1-D params never take Muon steps nor weight decay
+    adamw = build_optimizer([hidden, embed, bias], [hidden], "adamw", lr=1e-2, weight_decay=0.1)
+    assert isinstance(adamw, torch.optim.AdamW) and [len(g["params"]) for g in adamw.param_groups] == [2, 1]
+    with pytest.raises(ValueError, match="unknown optimizer 'sgd'"):
+        build_optimizer([hidden], [], "sgd", lr=1e-2, weight_decay=0.0)
 
 
 def test_train_with_muon_learns_and_resumes_exactly(tiny_data, tmp_path):
