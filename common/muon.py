@@ -2,8 +2,8 @@
 
 Muon (K. Jordan et al., 2024) keeps a momentum of each matrix's gradient and steps along its nearest
 semi-orthogonal matrix (the same singular vectors, every singular value 1), found with a few Newton-Schulz
-iterations. Every direction of the update then moves at the same rate, where Adam's elementwise steps are dominated by
-a few large singular directions. The orthogonalized step is scaled by 0.2 * sqrt(max(rows, cols)) so that its RMS
+iterations. Every direction of the update then moves at the same rate, where a raw momentum step is dominated by a
+few large singular directions. The orthogonalized step is scaled by 0.2 * sqrt(max(rows, cols)) so that its RMS
 matches a typical AdamW step (J. Liu et al., "Muon is scalable for LLM training", 2025): one learning rate, schedule
 and weight decay serve both kinds of groups, and `--optimizer muon` needs no other retuning to be tried.
 
