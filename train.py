@@ -361,13 +361,13 @@ class Trainer:
         if differing:
             raise TrainingStateError(f"{path / 'config.json'}: the checkpoint's model config differs from "
                                      f"--genie_config in {differing}")
-        saved_optimizer = ckpt["trainer"].get("args", {}).get("optimizer", "adamw")
+        state = ckpt["trainer"]
+        saved_optimizer = state.get("args", {}).get("optimizer", "adamw")  # runs from before --optimizer used AdamW
         if saved_optimizer != self.args.optimizer:
             raise TrainingStateError(f"{path}: the run was trained with --optimizer {saved_optimizer}, not "
                                      f"{self.args.optimizer}; resume it with the same optimizer")
         load_model(self.model, str(ckpt["model_path"]), device=str(self.device))
         self.optimizer.load_state_dict(ckpt["optimizer"])
-        state = ckpt["trainer"]
         self.scheduler.load_state_dict(state["scheduler"])
         self.step = self.last_saved_step = state["step"]
         same_order = all(state.get(k) == v for k, v in (

@@ -10,8 +10,8 @@
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
 gradient clipping and the optimizer train.py builds (AdamW unless --optimizer muon); with --genie_config, under that
 config's training recipe (--recipe) and, for a model with action inputs, with random action streams. Tokens per
-step = batch * T * S. The published implementation trains this shape at ~1,840 tokens/s on the project's 2-core CPU (fp32, batch 2); the ratio to that figure is printed (it is only
-meaningful for that shape on that machine).
+step = batch * T * S. The published implementation trains this shape at ~1,840 tokens/s on the project's 2-core CPU
+(fp32, batch 2); the ratio to that figure is printed (it is only meaningful for that shape on that machine).
 """
 import argparse
 import time

@@ -99,14 +99,14 @@ def build_optimizer(params: Iterable[torch.nn.Parameter], hidden_matrices: Itera
     (matrices and embeddings, as nanoGPT does), never to biases and norm weights.
     """
     params = [p for p in params if p.requires_grad]
+    matrices = [p for p in params if p.dim() >= 2]
+    no_decay = {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}
     if name == "adamw":
-        groups = [{"params": [p for p in params if p.dim() >= 2], "weight_decay": weight_decay},
-                  {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
-        return torch.optim.AdamW(groups, lr=lr, betas=betas, eps=eps, fused=fused or None)
+        return torch.optim.AdamW([{"params": matrices, "weight_decay": weight_decay}, no_decay], lr=lr, betas=betas,
+                                 eps=eps, fused=fused or None)
     if name != "muon":
         raise ValueError(f"unknown optimizer {name!r}: use adamw or muon")
     hidden = {id(p) for p in hidden_matrices if p.dim() == 2}
-    groups = [{"params": [p for p in params if id(p) in hidden], "weight_decay": weight_decay, "muon": True},
-              {"params": [p for p in params if p.dim() >= 2 and id(p) not in hidden], "weight_decay": weight_decay},
-              {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0}]
+    groups = [{"params": [p for p in matrices if id(p) in hidden], "weight_decay": weight_decay, "muon": True},
+              {"params": [p for p in matrices if id(p) not in hidden], "weight_decay": weight_decay}, no_decay]
     return MuonAdamW(groups, lr=lr, betas=betas, eps=eps, momentum=momentum)

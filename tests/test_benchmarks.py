@@ -8,6 +8,9 @@ from pathlib import Path
 import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+# bench_train.py at a shape that runs in about a second: one timed step of a 1-layer model, no warm-up
+TINY_TRAIN_STEP = ["--num_layers", "1", "--d_model", "32", "--num_heads", "2", "--s", "4", "--T", "10",
+                   "--image_vocab_size", "4096", "--steps", "1", "--warmup_steps", "0"]
 
 
 def load(name: str):
@@ -27,9 +30,7 @@ def test_benchmark_scripts_start_from_any_directory(script, tmp_path):
 
 def test_bench_train_compare_runs_fp32_and_both_bf16_attention_paths(capsys):
     from genie.attention import SelfAttention
-    load("bench_train").main(["--num_layers", "1", "--d_model", "32", "--num_heads", "2", "--s", "4", "--T", "10",
-                              "--image_vocab_size", "4096", "--steps", "1", "--warmup_steps", "0",
-                              "--mixed_precision", "compare"])
+    load("bench_train").main([*TINY_TRAIN_STEP, "--mixed_precision", "compare"])
     out = capsys.readouterr().out
     assert "fp32:" in out and "bf16 (fused attention):" in out and "bf16 (written-out temporal attention):" in out
     assert "bf16 (written-out temporal attention) vs fp32:" in out
@@ -38,17 +39,13 @@ def test_bench_train_compare_runs_fp32_and_both_bf16_attention_paths(capsys):
 
 
 def test_bench_train_readout_compare_runs_both_readouts(capsys):
-    load("bench_train").main(["--num_layers", "1", "--d_model", "32", "--num_heads", "2", "--s", "4", "--T", "10",
-                              "--image_vocab_size", "4096", "--steps", "1", "--warmup_steps", "0",
-                              "--readout", "compare"])
+    load("bench_train").main([*TINY_TRAIN_STEP, "--readout", "compare"])
     out = capsys.readouterr().out
     assert "fp32, all logits:" in out and "masked-token readout vs all logits:" in out
 
 
 def test_bench_train_optimizer_compare_steps_both_optimizers(capsys):
-    load("bench_train").main(["--num_layers", "1", "--d_model", "32", "--num_heads", "2", "--s", "4", "--T", "10",
-                              "--image_vocab_size", "4096", "--steps", "1", "--warmup_steps", "0",
-                              "--optimizer", "compare"])
+    load("bench_train").main([*TINY_TRAIN_STEP, "--optimizer", "compare"])
     out = capsys.readouterr().out
     assert "fp32:" in out and "fp32, Muon + AdamW:" in out and "Muon + AdamW vs AdamW:" in out
 
