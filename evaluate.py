@@ -42,6 +42,12 @@ prompt frame (P - 1) for every horizon. The JSON line holds only these keys (no 
 - rollout_psnr_mean, hold_psnr_mean, rollout_ssim_mean, hold_ssim_mean, rollout_lpips_mean, hold_lpips_mean: the
   means of those lists over horizons (LPIPS ones null with --skip_lpips);
 - rollout_far_psnr, hold_far_psnr: PSNR at the last horizon h = T - P (the sampling challenge's headline number);
+- rollout_unchanged, true_unchanged: per horizon, the share of tokens equal to the token at the same position one
+  frame earlier (at h = 1: the prompt's last frame), in the generated and in the true frames; rollout_repeated,
+  true_repeated: the share equal to their left neighbour in the same frame. A rollout that freezes shows
+  unchanged rising towards 1, one that flattens into uniform patches shows repeated far above the true frames';
+  each with its _mean over horizons;
+- maskgit_steps, temperature, copy_bias: the sampler that generated them;
 - gen_time: seconds per generated frame (tokens only, as above); num_examples: windows evaluated.
 """
 import argparse
@@ -59,7 +65,8 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import add_device_arg, add_greedy_tokens_arg, resolve_device, setup_logging
+from common.cli import (add_device_arg, add_greedy_tokens_arg, add_sampled_tokens_arg, resolve_device,
+                        setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
 from common.images import psnr, ssim
@@ -123,6 +130,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "when sampling (e^bias times the copy weight). > 0 gives sharper futures closer to "
                              "the previous frame (better LPIPS, lower PSNR); 0 is the model as trained.")
     add_greedy_tokens_arg(parser)
+    add_sampled_tokens_arg(parser)
     parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
                         help="Which tokens each MaskGIT step reveals: random (published default) or the most "
                              "confident (greedy).")
@@ -317,6 +325,20 @@ def score_rollout(scorer: FrameScorer, pred_NhHW: torch.Tensor, last_NHW: torch.
     return scores
 
 
+def token_statistics(pred_NhHW: torch.Tensor, last_NHW: torch.Tensor, future_NhHW: torch.Tensor) -> dict:
+    """Per-window, per-horizon token statistics (N, h) of the generated and the true frames (module doc):
+    {"rollout_unchanged", "true_unchanged", "rollout_repeated", "true_repeated"}. Shapes as `score_rollout`."""
+    stats = {}
+    for name, frames_NhHW in (("rollout", pred_NhHW), ("true", future_NhHW)):
+        before_NhHW = torch.cat([last_NHW.unsqueeze(1), frames_NhHW[:, :-1]], dim=1)
+        stats[f"{name}_unchanged"] = (frames_NhHW == before_NhHW).float().mean(dim=(2, 3))
+        stats[f"{name}_repeated"] = (frames_NhHW[..., 1:] == frames_NhHW[..., :-1]).float().mean(dim=(2, 3))
+    return stats
+
+
+TOKEN_STATISTICS = ("rollout_unchanged", "true_unchanged", "rollout_repeated", "true_repeated")
+
+
 def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_time: Optional[float]) -> dict:
     """The rollout JSON line (module doc) from per-horizon score sums {"rollout_psnr": (h,), ...} over windows."""
     result = {"protocol": "rollout", "num_prompt_frames": num_prompt_frames}
@@ -327,6 +349,9 @@ def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_ti
         result[f"{key}_mean"] = None if result[key] is None else sum(result[key]) / len(result[key])
     for name in ("rollout", "hold"):
         result[f"{name}_far_psnr"] = None if result[f"{name}_psnr"] is None else result[f"{name}_psnr"][-1]
+    for key in TOKEN_STATISTICS:
+        result[key] = (sums[key] / num_examples).tolist() if key in sums and num_examples else None
+        result[f"{key}_mean"] = None if result[key] is None else sum(result[key]) / len(result[key])
     result["gen_time"] = gen_time
     result["num_examples"] = num_examples
     return result
@@ -359,12 +384,14 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
         gen_time.update(time.perf_counter() - start, B * (T - P))
 
         scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips)
+        scores.update(token_statistics(tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:]))
         for key, values_Bh in scores.items():
             sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
         num_examples += B
         progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
-    return rollout_result(sums, num_examples, P, gen_time.mean)
+    return {**rollout_result(sums, num_examples, P, gen_time.mean), "maskgit_steps": args.maskgit_steps,
+            "temperature": args.temperature, "copy_bias": args.copy_bias}
 
 
 @torch.no_grad()
@@ -492,6 +519,7 @@ def run(args: argparse.Namespace) -> dict:
         raise DataMismatchError(f"--copy_bias: the checkpoint {args.checkpoint_dir} has no copy head (copy_radius)")
     model.set_copy_bias(args.copy_bias)
     model.set_joint_greedy(args.greedy_tokens == "joint")
+    model.set_joint_sampling(args.sampled_tokens == "joint")
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
                               filter_overlaps=True)
     check_dataset_matches(model.config, dataset, args.window_size, f"checkpoint {args.checkpoint_dir}",

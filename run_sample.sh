@@ -7,14 +7,16 @@
 #   2. generate from held-out prompts of data/sample/val, playing their recorded actions
 #      -> data/genie_model/generated (tokens)
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
-#   4. evaluate with the challenge metrics, the copy-the-last-frame baselines and the rollout protocol
-#      -> data/genie_model/*.json
+#   4. evaluate with the challenge metrics, the copy-the-last-frame baselines and the rollout protocol (greedy, and
+#      sampled: whole tokens at temperature 1) -> data/genie_model/*.json
+# Futures are decoded with the pointer's --copy_bias 2 (COPY_BIAS).
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
 # variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, GENERATE_ARGS (extra generate.py flags;
 # set it empty for a GENIE_CONFIG without actions, e.g. GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=),
-# EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations) change the
-# defaults below. When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is
-# also evaluated there (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json.
+# EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations),
+# SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout evaluation) and COPY_BIAS change the defaults below.
+# When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated
+# there (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json, metrics_rollout_sampled_unseen.json.
 set -euo pipefail
 cd "$(dirname "$0")"
 PY=venv/bin/python
@@ -23,6 +25,9 @@ OUT=${OUT:-data/genie_model}
 GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/sample_world_actions.json}
 TRAIN=$SAMPLE_DIR/train
 VAL=$SAMPLE_DIR/val
+# the pointer's decoding bias of the generated futures (GIF, comic, rollouts): its neighbours weighted e^2 against a
+# new token, sharper futures at the same PSNR (README); COPY_BIAS=0 for a model without the pointer (copy_radius)
+DECODE_ARGS="--copy_bias ${COPY_BIAS:-2}"
 [ -f "$TRAIN/metadata.json" ] || { echo "run_sample.sh: $TRAIN is missing; run ./build.sh first" >&2; exit 1; }
 
 "$PY" train.py --genie_config "$GENIE_CONFIG" --train_data_dir "$TRAIN" --val_data_dir "$VAL" \
@@ -32,7 +37,7 @@ VAL=$SAMPLE_DIR/val
 
 "$PY" genie/generate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --output_dir "$OUT/generated" \
   --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --example_stride "${EXAMPLE_STRIDE:-2500}" --maskgit_steps 2 --temperature 0 \
-  ${GENERATE_ARGS---actions_from_data}
+  $DECODE_ARGS ${GENERATE_ARGS---actions_from_data}
 "$PY" visualize.py --token_dir "$OUT/generated" --output_dir "$OUT" --fps 4
 
 # evaluate_tf DIR / evaluate_rollout DIR: the two protocols on a token dataset, with the env's extra flags
@@ -40,10 +45,14 @@ evaluate_tf() {
   "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$1" --skip_lpips \
     ${EVAL_ARGS---max_examples 270 --spread_examples}
 }
+# evaluate_rollout DIR [FLAGS]: FLAGS pick the sampler (none: greedy, 2 MaskGIT steps)
 evaluate_rollout() {
-  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$1" --protocol rollout \
-    ${ROLLOUT_EVAL_ARGS:---max_examples 48 --spread_examples --num_prompt_frames 8}
+  local dir=$1; shift
+  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$dir" --protocol rollout \
+    ${ROLLOUT_EVAL_ARGS:---max_examples 48 --spread_examples --num_prompt_frames 8} $DECODE_ARGS "$@"
 }
+# the sampled rollouts' flags (SAMPLED_ROLLOUT_ARGS; empty: no sampled rollouts): whole tokens drawn at temperature 1
+SAMPLED=${SAMPLED_ROLLOUT_ARGS---temperature 1}
 # CE and accuracy on 270 validation windows spread over the split (a third of them, to fit the CPU budget;
 # EVAL_ARGS= evaluates all 810); LPIPS (decodes every frame, slow on CPU) on the first 60.
 evaluate_tf "$VAL" | tee "$OUT/eval.log"
@@ -53,17 +62,21 @@ evaluate_tf "$VAL" | tee "$OUT/eval.log"
 # The 1X sampling challenge's form: 8 prompt frames, the other 8 generated free-running, PSNR / SSIM / LPIPS per
 # horizon against holding the last prompt frame.
 evaluate_rollout "$VAL" | tee "$OUT/eval_rollout.log"
+[ -z "$SAMPLED" ] || evaluate_rollout "$VAL" $SAMPLED | tee "$OUT/eval_rollout_sampled.log"
 UNSEEN_DIR=${UNSEEN_DIR:-data/unseen}
 if [ -f "$UNSEEN_DIR/val/metadata.json" ]; then
   evaluate_tf "$UNSEEN_DIR/val" | tee "$OUT/eval_unseen.log"
   evaluate_rollout "$UNSEEN_DIR/val" | tee "$OUT/eval_rollout_unseen.log"
+  [ -z "$SAMPLED" ] || evaluate_rollout "$UNSEEN_DIR/val" $SAMPLED | tee "$OUT/eval_rollout_sampled_unseen.log"
   tail -n 1 "$OUT/eval_unseen.log" > "$OUT/metrics_unseen.json"
   tail -n 1 "$OUT/eval_rollout_unseen.log" > "$OUT/metrics_rollout_unseen.json"
+  [ -z "$SAMPLED" ] || tail -n 1 "$OUT/eval_rollout_sampled_unseen.log" > "$OUT/metrics_rollout_sampled_unseen.json"
 fi
 tail -n 1 "$OUT/eval.log" > "$OUT/metrics.json"
 tail -n 1 "$OUT/eval_lpips.log" > "$OUT/metrics_lpips.json"
 tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"
 tail -n 1 "$OUT/eval_rollout.log" > "$OUT/metrics_rollout.json"
+[ -z "$SAMPLED" ] || tail -n 1 "$OUT/eval_rollout_sampled.log" > "$OUT/metrics_rollout_sampled.json"
 echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png"
 echo "metrics: $OUT/metrics.json (LPIPS: $OUT/metrics_lpips.json; copy baselines: $OUT/baselines.json;"
-echo "         rollout: $OUT/metrics_rollout.json)"
+echo "         rollouts: $OUT/metrics_rollout.json, sampled: $OUT/metrics_rollout_sampled.json)"

@@ -56,6 +56,16 @@ def add_greedy_tokens_arg(parser) -> None:
                              "head decode the same either way.")
 
 
+def add_sampled_tokens_arg(parser) -> None:
+    """--sampled_tokens of the scripts that decode with a dynamics model (STMaskGIT.set_joint_sampling)."""
+    parser.add_argument("--sampled_tokens", choices=("joint", "factored"), default="joint",
+                        help="How sampling (--temperature > 0) draws each token of a model with a copy head "
+                             "(copy_radius): joint: a whole token from its copy-or-new mixture (an option, then "
+                             "for a new token the readout's factors); factored: each factor on its own from the "
+                             "per-factor marginals (the earlier behaviour; it can pair two neighbours' factors "
+                             "into a token neither holds). Models without a copy head sample the same either way.")
+
+
 def add_num_threads_arg(parser) -> None:
     parser.add_argument("--num_threads", type=int, default=0,
                         help="CPU threads for torch (0: torch's default); 1 gives steadier, often faster runs of "

@@ -90,11 +90,13 @@ class CopyHead(nn.Module):
 
     @torch.no_grad()
     def forward_and_mode(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor,
-                         sources_NK: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """`forward` and `mode` (inference) from one computation of their shared parts."""
+                         sources_NK: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`forward` and `mode` (inference) from one computation of their shared parts, and the log mixture
+        weights (..., K + 1) (what sampling whole tokens draws the option from, genie.sampling)."""
         parts = self._parts(logits_NVF, hidden_NC, sources_NK)
         ids_N, probs_N = self._mode(sources_NK, *parts)  # first: the mixture overwrites the readout's log-probs
-        return self._mixture(*parts), ids_N, probs_N
+        log_weights = parts[1]
+        return self._mixture(*parts), ids_N, probs_N, log_weights
 
     def _parts(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor, sources_NK: torch.Tensor):
         """What the mixture and its mode are computed from: which neighbours are offered (..., K), the log weights

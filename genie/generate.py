@@ -28,7 +28,8 @@ import torch
 from einops import rearrange
 from tqdm.auto import tqdm
 
-from common.cli import add_device_arg, add_greedy_tokens_arg, resolve_device, setup_logging
+from common.cli import (add_device_arg, add_greedy_tokens_arg, add_sampled_tokens_arg, resolve_device,
+                        setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
@@ -76,6 +77,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "(e^bias times the copy weight). > 0 gives sharper futures closer to the previous frame; "
                         "0 is the model as trained.")
     add_greedy_tokens_arg(p)
+    add_sampled_tokens_arg(p)
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
                    help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
     add_device_arg(p)
@@ -201,6 +203,7 @@ def generate(args) -> dict:
     check_compatible(model, dataset, args)
     model.set_copy_bias(args.copy_bias)
     model.set_joint_greedy(args.greedy_tokens == "joint")
+    model.set_joint_sampling(args.sampled_tokens == "joint")
     s, P, T = dataset.metadata["s"], args.num_prompt_frames, args.window_size
     generator = torch.Generator(device).manual_seed(args.seed)
     K = model.config.num_latent_actions
@@ -237,7 +240,8 @@ def generate(args) -> dict:
                     stride=args.stride, checkpoint_dir=str(args.checkpoint_dir), val_data_dir=str(args.val_data_dir))
     actions = None
     if model.copy_head is not None:
-        metadata.update(copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens)
+        metadata.update(copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens,
+                        sampled_tokens=args.sampled_tokens)
     if model.config.uses_actions:
         metadata.update(actions_from_data=args.actions_from_data, latent_actions=args.latent_actions)
     if K:

@@ -12,7 +12,7 @@ from einops import rearrange
 
 from genie.copy_head import previous_frames
 from genie.kv_cache import TemporalKVCache
-from genie.sampling import Prediction, maskgit_sample
+from genie.sampling import LOGITS_LAYOUT, Prediction, maskgit_sample
 from genie.transformer import TemporalMode
 
 
@@ -43,9 +43,9 @@ def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: Temporal
 
 
 def frame_slice(prediction: Prediction, index) -> Prediction:
-    """Frames `index` of a `Prediction` of windows (logits (B, V, F, T, H, W), mode (B, T, H, W)): int or slice."""
-    return Prediction(prediction.logits[:, :, :, index],
-                      *(None if v is None else v[:, index] for v in prediction[1:]))
+    """Frames `index` of a `Prediction` of windows (logits (B, V, F, T, H, W), mode (B, T, H, W), ...): int or
+    slice."""
+    return prediction.map(lambda v: v[:, :, :, index], lambda v: v[:, index])
 
 
 def _copy_sources(model, x_BTHW: torch.Tensor, first_frame: int, mode: TemporalMode,
@@ -180,19 +180,19 @@ def teacher_forced(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperat
 
 
 def stack_frames(predictions) -> Prediction:
-    """Per-frame `Prediction`s (logits (B, V, F, H, W), mode (B, H, W)) -> one `Prediction` of all the frames
-    (logits (B, V, F, n, H, W), mode (B, n, H, W))."""
-    logits = torch.stack([p.logits for p in predictions], dim=3)
-    if predictions[0].mode_ids is None:
-        return Prediction(logits)
-    return Prediction(logits, *(torch.stack([p[i] for p in predictions], dim=1) for i in (1, 2)))
+    """Per-frame `Prediction`s (logits (B, V, F, H, W), mode (B, H, W), ...) -> one `Prediction` of all the
+    frames (logits (B, V, F, n, H, W), mode (B, n, H, W), ...)."""
+    first = predictions[0]
+    return Prediction(*(None if v is None else torch.stack([p[i] for p in predictions],
+                                                           dim=3 if name in LOGITS_LAYOUT else 1)
+                        for i, (name, v) in enumerate(zip(first._fields, first))))
 
 
 def targets_to_frames(prediction: Prediction) -> Prediction:
-    """A `Prediction` of the n targets of B windows (logits (B, V, F, n, H, W), mode (B, n, H, W)) as one of B * n
-    frames (logits (B*n, V, F, H, W), mode (B*n, H, W))."""
-    return Prediction(rearrange(prediction.logits, "B V F n H W -> (B n) V F H W"),
-                      *(None if v is None else rearrange(v, "B n H W -> (B n) H W") for v in prediction[1:]))
+    """A `Prediction` of the n targets of B windows (logits (B, V, F, n, H, W), mode (B, n, H, W), ...) as one of
+    B * n frames (logits (B*n, V, F, H, W), mode (B*n, H, W), ...)."""
+    return prediction.map(lambda v: rearrange(v, "B V F n H W -> (B n) V F H W"),
+                          lambda v: rearrange(v, "B n H W ... -> (B n) H W ..."))
 
 
 def sample_targets(model, logits_fn, B: int, T: int, x_BTHW: torch.Tensor, maskgit_steps: int, temperature: float,

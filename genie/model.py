@@ -70,7 +70,9 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.copy_head = None if config.copy_radius is None else CopyHead(
             config.d_model, config.copy_radius, config.num_factored_vocabs, config.factored_vocab_size,
             config.mask_token_id, config.copy_match_input)
-        self.joint_greedy = True  # decoding setting (set_joint_greedy), not a weight
+        # decoding settings (set_joint_greedy, set_joint_sampling), not weights
+        self.joint_greedy = True
+        self.joint_sampling = True
 
     @property
     def mask_token_id(self) -> int:
@@ -174,6 +176,14 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         factors; not saved with the weights."""
         self.joint_greedy = bool(enabled)
 
+    def set_joint_sampling(self, enabled: bool) -> None:
+        """Decoding setting of a model with a copy head: sampling at a temperature draws whole tokens from the
+        copy-or-new mixture (True, the default; `genie.sampling.sample_mixture_tokens`: an option, then for a new
+        token the readout's factors) or each factor from the per-factor marginals (False; the earlier behaviour,
+        which can pair two neighbours' factors into a token neither holds). No effect on a model without a copy
+        head; not saved with the weights."""
+        self.joint_sampling = bool(enabled)
+
     def readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Hidden states (..., C) -> factored logits (..., V, F).
 
@@ -183,17 +193,21 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
 
     def predict(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None,
                 with_mode: bool = True) -> Prediction:
-        """`readout`, plus, when greedy decoding must not take the factor-wise argmax (a copy head with
-        joint_greedy), the model's most probable tokens (...) and their probabilities (...) (`CopyHead.mode`)."""
+        """`readout`, plus, for a copy head's mixture (with_mode), what decoding takes instead of the factor-wise
+        logits: the most probable whole tokens (...) and their probabilities (...) (`CopyHead.mode`; joint_greedy)
+        and the mixture's parts for drawing whole tokens (joint_sampling)."""
         x_scaled = x_NC if self.readout_width_mult is None else x_NC / self.readout_width_mult
         logits = rearrange(self.out_x_proj(x_scaled), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
         if self.copy_head is None:
             return Prediction(logits)
         if sources_NK is None:
             raise ValueError("this model copies from the previous frame (copy_radius is set): pass copy_sources")
-        if not (with_mode and self.joint_greedy):
+        if not (with_mode and (self.joint_greedy or self.joint_sampling)):
             return Prediction(self.copy_head(logits, x_NC, sources_NK))
-        return Prediction(*self.copy_head.forward_and_mode(logits, x_NC, sources_NK))
+        mixture, ids, probs, log_weights = self.copy_head.forward_and_mode(logits, x_NC, sources_NK)
+        greedy = (ids, probs) if self.joint_greedy else (None, None)
+        sampling = (log_weights, sources_NK, logits) if self.joint_sampling else (None, None, None)
+        return Prediction(mixture, *greedy, *sampling)
 
     def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
                latent_actions: Optional[torch.Tensor] = None,
@@ -217,14 +231,13 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
     def frames_prediction(self, x_BTSC: torch.Tensor, sources_BTSK: Optional[torch.Tensor],
                           with_mode: bool = False):
         """Final hidden states (B, T, S, C) -> factored logits (B, V, F, T, H, W); with_mode: a `Prediction` of
-        them, with the greedy tokens and their probabilities (B, T, H, W) where those are not the factor-wise
-        argmax (else None)."""
-        prediction = self.predict(x_BTSC, sources_BTSK, with_mode)
-        logits_BVFTHW = rearrange(prediction.logits, "B T (H W) V F -> B V F T H W", H=self.config.H)
-        if not with_mode:
-            return logits_BVFTHW
-        return Prediction(logits_BVFTHW, *(None if v is None else rearrange(v, "B T (H W) -> B T H W", H=self.config.H)
-                                           for v in prediction[1:]))
+        them, with the greedy tokens and their probabilities (B, T, H, W) and the copy mixture's parts
+        ((B, T, H, W, K + 1), (B, T, H, W, K), (B, V, F, T, H, W)) where the model has them (else None)."""
+        H = self.config.H
+        prediction = self.predict(x_BTSC, sources_BTSK, with_mode).map(
+            lambda v: rearrange(v, "B T (H W) V F -> B V F T H W", H=H),
+            lambda v: rearrange(v, "B T (H W) ... -> B T H W ...", H=H))
+        return prediction if with_mode else prediction.logits
 
     def forward(self, batch: MaskGITBatch, recipe: Optional[TrainingRecipe] = None) -> objectives.LossOutput:
         """The training loss of a collated batch (genie/objectives.py): factored CE and accuracy over the tokens

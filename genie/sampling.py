@@ -9,7 +9,7 @@ from typing import Callable, NamedTuple, Optional, Tuple, Union
 import torch
 from einops import rearrange
 
-from genie.factorization import unfactorize_token_ids
+from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.schedule import num_masked_after_step
 
 UNMASK_MODES = ("random", "greedy")
@@ -18,11 +18,32 @@ GREEDY_TEMPERATURE = 1e-8  # at or below this temperature, sampling is argmax
 
 class Prediction(NamedTuple):
     """A model's prediction at some positions: factored logits (..., V, F) (log-probabilities for a model with a
-    copy head) and, when its greedy choice is not the factor-wise argmax of those (the copy head's mixture,
-    `CopyHead.mode`), the most probable whole token ids (...) and their probabilities (...)."""
+    copy head) and, for a copy head's mixture (genie/copy_head.py), what decodes it as whole tokens:
+
+    - mode_ids, mode_probs (...): its most probable whole tokens and their probabilities (`CopyHead.mode`), which
+      greedy steps take instead of the factor-wise argmax of the logits;
+    - copy_log_weights (..., K + 1), copy_sources (..., K), readout_logits (..., V, F): its parts (log weights of
+      the K previous-frame neighbours and, last, of a new token; the neighbours' token ids; the readout's logits),
+      from which sampling steps draw whole tokens (`sample_mixture_tokens`) instead of each factor on its own.
+
+    Layouts: `logits` and `readout_logits` share one (e.g. (B, V, F, H, W) for frames), the others put the
+    positions first and their own axis last (e.g. (B, H, W) and (B, H, W, K))."""
     logits: torch.Tensor
     mode_ids: Optional[torch.Tensor] = None
     mode_probs: Optional[torch.Tensor] = None
+    copy_log_weights: Optional[torch.Tensor] = None
+    copy_sources: Optional[torch.Tensor] = None
+    readout_logits: Optional[torch.Tensor] = None
+
+    def map(self, logits_fn: Callable[[torch.Tensor], torch.Tensor],
+            positions_fn: Callable[[torch.Tensor], torch.Tensor]) -> "Prediction":
+        """A `Prediction` with logits_fn applied to the fields in the logits' layout and positions_fn to the
+        others (None fields stay None)."""
+        return Prediction(*(None if v is None else (logits_fn if name in LOGITS_LAYOUT else positions_fn)(v)
+                            for name, v in zip(self._fields, self)))
+
+
+LOGITS_LAYOUT = ("logits", "readout_logits")
 
 
 def sample_factored_tokens(logits_BVFS: torch.Tensor, temperature: float = 0.0,
@@ -49,6 +70,41 @@ def sample_factored_tokens(logits_BVFS: torch.Tensor, temperature: float = 0.0,
     return unfactorize_token_ids(factors_BSF, F_, V), confidence_BS
 
 
+def sample_mixture_tokens(log_weights_NK1: torch.Tensor, sources_NK: torch.Tensor, readout_NVF: torch.Tensor,
+                          temperature: float = 1.0,
+                          generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Draw whole tokens from a copy head's mixture; return (token ids (...), their mixture probabilities (...)).
+
+    log_weights_NK1 (..., K + 1): log weights of the K neighbours and, last, of a new token (-inf: not offered);
+    sources_NK (..., K): the neighbours' token ids; readout_NVF (..., V, F): the readout's factored logits.
+    Each position first draws an option from softmax(log weights / temperature), then, for the new-token option,
+    each factor from softmax(readout / temperature). At temperature 1 that is an exact draw from the mixture over
+    whole tokens; drawing each factor from the mixture's marginals instead (`sample_factored_tokens`) can pair one
+    neighbour's low factor with another's high factor, a token no option proposed. Other temperatures temper the
+    option and the readout separately (the mixture's own tempered distribution has no such closed form).
+    """
+    if temperature <= GREEDY_TEMPERATURE:
+        raise ValueError(f"sample_mixture_tokens draws at a temperature > {GREEDY_TEMPERATURE}, got {temperature}")
+    K = sources_NK.shape[-1]
+    V, F_ = readout_NVF.shape[-2:]
+    shape = sources_NK.shape[:-1]
+    log_w_MK1 = log_weights_NK1.reshape(-1, K + 1).float()
+    option_M = torch.multinomial((log_w_MK1 / temperature).softmax(dim=-1), 1, generator=generator).squeeze(-1)
+    readout_MFV = rearrange(readout_NVF.reshape(-1, V, F_).float(), "M V F -> M F V")
+    new_MF = torch.multinomial((readout_MFV / temperature).softmax(dim=-1).reshape(-1, V), 1,
+                               generator=generator).view(-1, F_)
+    sources_MK = sources_NK.reshape(-1, K)
+    copied_M = sources_MK.gather(-1, option_M.clamp(max=K - 1).unsqueeze(-1)).squeeze(-1)
+    ids_M = torch.where(option_M == K, unfactorize_token_ids(new_MF, F_, V), copied_M)
+    # the drawn token's probability under the (untempered) mixture: the copy mass of the neighbours holding it
+    # plus the new-token weight times the readout's probability of its factors
+    w_MK1 = log_w_MK1.exp()
+    ids_factors_MF = factorize_token_ids(ids_M, F_, V)
+    log_readout_M = (readout_MFV.log_softmax(dim=-1).gather(-1, ids_factors_MF.unsqueeze(-1))).sum(dim=(-2, -1))
+    probs_M = (w_MK1[:, :K] * (sources_MK == ids_M.unsqueeze(-1))).sum(-1) + w_MK1[:, K] * log_readout_M.exp()
+    return ids_M.view(shape), probs_M.view(shape)
+
+
 def maskgit_sample(logits_fn: Callable[[torch.Tensor], Union[torch.Tensor, Prediction]], frame_BHW: torch.Tensor,
                    mask_token_id: int, maskgit_steps: int, temperature: float = 0.0, unmask_mode: str = "random",
                    generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -56,11 +112,12 @@ def maskgit_sample(logits_fn: Callable[[torch.Tensor], Union[torch.Tensor, Predi
 
     logits_fn: (B, H, W) token ids (mask_token_id where unknown) -> factored logits (B, V, F, H, W), or a
     `Prediction` of them with mode ids and probabilities (B, H, W), which greedy steps then take (and their
-    probabilities as confidences) instead of the factor-wise argmax.
+    probabilities as confidences) instead of the factor-wise argmax, and / or with a copy head's mixture parts,
+    from which steps at a temperature then draw whole tokens (`sample_mixture_tokens`).
     frame_BHW: the starting frames; tokens other than mask_token_id are given and are never changed.
     After step s (of n), ceil(cos(pi/2 (s+1)/n) * S) tokens stay masked (genie.schedule); the last step reveals
     all. Which masked tokens are revealed: "random" (the published default) or "greedy" (most confident first).
-    Random numbers are drawn in a fixed order (factor samples, then the reveal order, each step), so two callers
+    Random numbers are drawn in a fixed order (token samples, then the reveal order, each step), so two callers
     whose logits_fn agree draw the same samples from the same generator.
 
     Returns (samples (B, H, W) with no mask token left, factored logits of the first step (B, V, F, H, W)).
@@ -82,6 +139,10 @@ def maskgit_sample(logits_fn: Callable[[torch.Tensor], Union[torch.Tensor, Predi
             first_logits = logits_BVFHW
         if prediction.mode_ids is not None and temperature <= GREEDY_TEMPERATURE:
             tokens_BS, confidence_BS = prediction.mode_ids.reshape(B, S), prediction.mode_probs.reshape(B, S)
+        elif prediction.copy_log_weights is not None and temperature > GREEDY_TEMPERATURE:
+            tokens_BS, confidence_BS = sample_mixture_tokens(
+                prediction.copy_log_weights.reshape(B, S, -1), prediction.copy_sources.reshape(B, S, -1),
+                rearrange(prediction.readout_logits.flatten(3), "B V F S -> B S V F"), temperature, generator)
         else:
             tokens_BS, confidence_BS = sample_factored_tokens(logits_BVFHW.flatten(3), temperature, generator)
         masked_BS = frame_BS == mask_token_id

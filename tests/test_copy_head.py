@@ -10,6 +10,7 @@ from genie.copy_head import CopyHead, previous_frames
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.inference import generate, teacher_forced
 from genie.reference import dense_copy_mixture, generate_uncached, teacher_forced_uncached
+from genie.sampling import sample_mixture_tokens
 
 V, F_ = 64, 2
 MASK = V ** F_
@@ -293,8 +294,52 @@ def test_greedy_decoding_takes_the_joint_mode_unless_set_to_factored():
                                    rtol=0)
         assert not torch.equal(joint, factored)
         assert not torch.equal(joint_tf, teacher_forced(model, x, generator=gen())[0])
-        # sampling at a temperature draws factors from the logits whatever the setting
+        # sampling at a temperature does not read the greedy setting
         drawn = generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0]
         model.set_joint_greedy(True)
         torch.testing.assert_close(generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0], drawn, atol=0,
                                    rtol=0)
+
+
+def test_sampling_draws_whole_tokens_unless_set_to_factored():
+    model = tiny_copy_model(radius=1, seed=4, match=True)
+
+    def gen():
+        return torch.Generator().manual_seed(0)
+
+    x = torch.randint(0, MASK // 8, (4, 6, 4, 4))
+    x[:, 1:] = x[:, :1].roll(1, dims=-1)
+    model.set_copy_bias(30.0)  # no weight left on a new token: every whole-token draw is a neighbour's token
+    joint = generate(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0, generator=gen())[0][:, 2]
+    torch.testing.assert_close(joint, generate_uncached(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0,
+                                                        generator=gen())[0][:, 2], atol=0, rtol=0)
+    sources = model.copy_sources(x[:, 1:2])[:, 0]  # (B, S, K): frame 2's neighbours in frame 1
+    assert (sources == joint.flatten(1).unsqueeze(-1)).any(-1).all()
+    model.set_joint_sampling(False)
+    factored = generate(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0, generator=gen())[0][:, 2]
+    assert not (sources == factored.flatten(1).unsqueeze(-1)).any(-1).all()  # some token no neighbour holds
+
+
+@pytest.mark.parametrize("temperature", [1.0, 0.5])
+def test_whole_token_draws_follow_the_mixture(temperature):
+    torch.manual_seed(6)
+    head = CopyHead(d_model=8, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
+    # one position repeated: two tokens sharing no factor held by several neighbours, one neighbour not offered
+    a, b = 3 + V * 7, 5 + V * 9
+    sources = torch.tensor([a, a, b, a, b, b, a, MASK, b]).expand(20000, -1)
+    logits = (torch.randn(1, V, F_) * 2).expand(20000, -1, -1)
+    hidden = torch.randn(1, 8).expand(20000, -1)
+    with torch.no_grad():
+        log_weights = head.log_weights(hidden, sources != MASK)
+        ids, probs = sample_mixture_tokens(log_weights, sources, logits, temperature, torch.Generator().manual_seed(1))
+        exact = joint_mixture_probs(head, logits[:1], hidden[:1], sources[:1])[0]
+    torch.testing.assert_close(probs, exact[ids])  # the returned confidence: the untempered mixture probability
+    counts = torch.bincount(ids, minlength=V ** F_).float() / len(ids)
+    if temperature == 1.0:  # an exact draw from the mixture over whole tokens
+        assert (counts - exact).abs().max() < 0.015
+    else:  # the option from the tempered weights: a neighbour's token with their summed tempered weight
+        tempered = (log_weights[0] / temperature).softmax(-1)
+        for token in (a, b):
+            expected = tempered[:-1][sources[0] == token].sum() + tempered[-1] * logits[0].softmax(0)[
+                factorize_token_ids(torch.tensor(token), F_, V), torch.arange(F_)].prod()
+            assert abs(counts[token] - expected) < 0.015

@@ -14,7 +14,8 @@ from torch.utils.data import DataLoader
 
 from common.images import psnr
 from data import RawTokenDataset, read_metadata, write_token_dataset
-from evaluate import FrameScorer, evaluate, example_indices, main, rollout_result, score_rollout
+from evaluate import (FrameScorer, evaluate, example_indices, main, rollout_result, score_rollout,
+                      token_statistics)
 from genie import GenieConfig, STMaskGIT
 from genie.metrics import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
                            token_accuracy)
@@ -26,7 +27,9 @@ JSON_KEYS = {"loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time", "n
 ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold")
                        for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
 ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
-                                     "gen_time", "num_examples"}
+                                     "gen_time", "num_examples", "maskgit_steps", "temperature", "copy_bias"} | {
+    f"{name}_{stat}{suffix}" for name in ("rollout", "true") for stat in ("unchanged", "repeated")
+    for suffix in ("", "_mean")}
 
 
 # ------------------------------------------------------------------ metric functions
@@ -318,6 +321,25 @@ def test_rollout_scores_each_horizon_against_its_true_frame():
     assert scores["rollout_ssim"][0, 0] < 1.0
 
 
+def test_token_statistics_show_a_frozen_and_a_flat_rollout():
+    last_NHW = torch.arange(16).view(1, 4, 4)
+    future_NhHW = torch.stack([last_NHW.roll(1, dims=-1), last_NHW.roll(2, dims=-1), last_NHW.roll(2, dims=-1)], 1)
+    future_NhHW[0, 2, 0] = 99  # the last true frame: its first row flat and unchanged elsewhere
+    frozen_NhHW = last_NHW.unsqueeze(1).expand(-1, 3, -1, -1)
+    stats = token_statistics(frozen_NhHW, last_NHW, future_NhHW)
+    torch.testing.assert_close(stats["rollout_unchanged"], torch.ones(1, 3))
+    torch.testing.assert_close(stats["rollout_repeated"], torch.zeros(1, 3))
+    torch.testing.assert_close(stats["true_unchanged"], torch.tensor([[0.0, 0.0, 12 / 16]]))
+    torch.testing.assert_close(stats["true_repeated"], torch.tensor([[0.0, 0.0, 3 / 12]]))
+    flat_NhHW = torch.full((1, 3, 4, 4), 98)
+    flat_NhHW[0, 0, :, 0] = 97  # horizon 1: the first column differs from the rest
+    stats = token_statistics(flat_NhHW, last_NHW, future_NhHW)
+    torch.testing.assert_close(stats["rollout_repeated"], torch.tensor([[8 / 12, 1.0, 1.0]]))
+    torch.testing.assert_close(stats["rollout_unchanged"], torch.tensor([[0.0, 12 / 16, 1.0]]))
+    result = rollout_result({k: v.double().sum(dim=0) for k, v in stats.items()}, 1, 8, 0.1)
+    assert result["rollout_repeated_mean"] == pytest.approx((8 / 12 + 2) / 3)
+
+
 def test_rollout_protocol_json_line(tiny, capsys):
     assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3",
                           "--max_examples", "4", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips")) == 0
@@ -364,11 +386,13 @@ def test_rollout_needs_a_tokenizer_even_with_skip_lpips(tiny, tmp_path, capsys):
     assert "decodes frames for PSNR and SSIM" in captured.err and captured.out == ""
 
 
-@pytest.mark.parametrize("flag, joint", [((), True), (("--greedy_tokens", "factored"), False)])
-def test_greedy_tokens_flag_sets_the_models_decoding(tiny, capsys, monkeypatch, flag, joint):
+@pytest.mark.parametrize("name, setter", [("greedy_tokens", "set_joint_greedy"),
+                                          ("sampled_tokens", "set_joint_sampling")])
+@pytest.mark.parametrize("choice", [None, "joint", "factored"])
+def test_token_choice_flags_set_the_models_decoding(tiny, capsys, monkeypatch, name, setter, choice):
     settings = []
-    real = STMaskGIT.set_joint_greedy
-    monkeypatch.setattr(STMaskGIT, "set_joint_greedy", lambda model, enabled: settings.append(enabled) or real(
-        model, enabled))
+    real = getattr(STMaskGIT, setter)
+    monkeypatch.setattr(STMaskGIT, setter, lambda model, enabled: settings.append(enabled) or real(model, enabled))
+    flag = () if choice is None else (f"--{name}", choice)
     assert main(eval_args(tiny.data, tiny.ckpt, "--skip_lpips", "--max_examples", "1", *flag)) == 0
-    assert settings == [joint]
+    assert settings == [choice != "factored"]

@@ -3,9 +3,10 @@ import math
 
 import pytest
 import torch
+from einops import rearrange
 
 from genie.factorization import unfactorize_token_ids
-from genie.sampling import Prediction, maskgit_sample, sample_factored_tokens
+from genie.sampling import Prediction, maskgit_sample, sample_factored_tokens, sample_mixture_tokens
 from genie.schedule import num_masked_after_step
 
 V, F_ = 8, 2
@@ -149,3 +150,24 @@ def test_greedy_steps_take_a_predictions_mode_and_its_probabilities_as_confidenc
     plain, _ = maskgit_sample(lambda f: logits, frame, MASK, 1, temperature=1.0,
                               generator=torch.Generator().manual_seed(0))
     assert torch.equal(drawn, plain) and not torch.equal(drawn, mode)
+
+
+def test_steps_at_a_temperature_draw_from_the_mixture_parts_when_given():
+    B, H, W, K = 2, 3, 3, 4
+    g = torch.Generator().manual_seed(5)
+    logits = torch.randn(B, V, F_, H, W, generator=g)
+    readout = torch.randn(B, V, F_, H, W, generator=g) * 3
+    log_weights = torch.randn(B, H, W, K + 1, generator=g).log_softmax(-1)
+    sources = torch.randint(0, MASK, (B, H, W, K), generator=g)
+    mode = torch.randint(0, MASK, (B, H, W), generator=g)
+    prediction = Prediction(logits, mode, torch.rand(B, H, W, generator=g), log_weights, sources, readout)
+    frame = torch.full((B, H, W), MASK)
+    drawn, _ = maskgit_sample(lambda f: prediction, frame, MASK, 1, temperature=1.0,
+                              generator=torch.Generator().manual_seed(0))
+    direct, _ = sample_mixture_tokens(log_weights, sources, rearrange(readout, "B V F H W -> B H W V F"), 1.0,
+                                      torch.Generator().manual_seed(0))
+    assert torch.equal(drawn, direct)
+    greedy, _ = maskgit_sample(lambda f: prediction, frame, MASK, 1)
+    assert torch.equal(greedy, mode)  # greedy steps still take the mode
+    with pytest.raises(ValueError, match="temperature"):
+        sample_mixture_tokens(log_weights, sources, readout, 0.0)
