@@ -11,16 +11,20 @@ Three ways to turn readout logits (N, 512, 2) into log-probabilities, timed side
 Each is timed for inference (no autograd) and for training (forward + backward). Prints milliseconds, the ratios
 sparse / plain and dense / sparse, and the largest difference between sparse and dense. Then what greedy decoding
 adds at inference: CopyHead.mode (the mixture's most probable whole token, the default) next to the factor-wise
-argmax of the sparse mixture (`--greedy_tokens factored`).
+argmax of the sparse mixture (`--greedy_tokens factored`); and what sampling at temperature 1 adds:
+genie.sampling.sample_mixture_tokens (whole tokens, the default) next to sample_factored_tokens over the mixture's
+marginals (`--sampled_tokens factored`).
 """
 import argparse
 import time
 
 import torch
+from einops import rearrange
 
 from common.cli import add_num_threads_arg, apply_num_threads
 from genie.copy_head import CopyHead
 from genie.reference import dense_copy_mixture
+from genie.sampling import sample_factored_tokens, sample_mixture_tokens
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -82,6 +86,14 @@ def main(argv=None) -> int:
     joint = timed(lambda: head.forward_and_mode(logits_NVF, hidden_NC, sources_NK), args.repeats, False)
     print(f"greedy decoding: mixture + factor-wise argmax {1e3 * factor_wise:8.1f} ms   mixture + joint mode "
           f"{1e3 * joint:8.1f} ms   joint/factor-wise {joint / factor_wise:.2f}x")
+    generator = torch.Generator().manual_seed(args.seed)
+    marginals = timed(lambda: sample_factored_tokens(rearrange(head(logits_NVF, hidden_NC, sources_NK),
+                                                               "N V F -> 1 V F N"), 1.0, generator),
+                      args.repeats, False)
+    whole = timed(lambda: sample_mixture_tokens(head.forward_and_mode(logits_NVF, hidden_NC, sources_NK)[3],
+                                                sources_NK, logits_NVF, 1.0, generator), args.repeats, False)
+    print(f"sampling (T = 1): mixture + factor-wise draws {1e3 * marginals:8.1f} ms   mixture + whole-token draws "
+          f"{1e3 * whole:8.1f} ms   whole/factor-wise {whole / marginals:.2f}x")
     with torch.no_grad():
         diff = (head(logits_NVF, hidden_NC, sources_NK)
                 - dense_copy_mixture(head, logits_NVF, hidden_NC, sources_NK)).abs().max().item()
