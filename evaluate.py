@@ -65,8 +65,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import (add_device_arg, add_greedy_tokens_arg, add_sampled_tokens_arg, resolve_device,
-                        setup_logging)
+from common.cli import add_device_arg, add_token_choice_args, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
 from common.images import psnr, ssim
@@ -129,8 +128,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
                              "when sampling (e^bias times the copy weight). > 0 gives sharper futures closer to "
                              "the previous frame (better LPIPS, lower PSNR); 0 is the model as trained.")
-    add_greedy_tokens_arg(parser)
-    add_sampled_tokens_arg(parser)
+    add_token_choice_args(parser)
     parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
                         help="Which tokens each MaskGIT step reveals: random (published default) or the most "
                              "confident (greedy).")

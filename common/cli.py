@@ -46,24 +46,25 @@ def add_device_arg(parser, help: str = "torch device: auto (cuda when available,
     parser.add_argument("--device", type=_device_name, default="auto", help=help, **kwargs)
 
 
-def add_greedy_tokens_arg(parser) -> None:
-    """--greedy_tokens of the scripts that decode with a dynamics model (STMaskGIT.set_joint_greedy)."""
-    parser.add_argument("--greedy_tokens", choices=("joint", "factored"), default="joint",
-                        help="How greedy decoding (--temperature 0) picks each token of a model with a copy head "
-                             "(copy_radius): joint: the most probable whole token of its copy-or-new mixture; "
-                             "factored: each factor's argmax of the per-factor marginals (the earlier behaviour; it "
-                             "can combine two neighbours' factors into a token neither holds). Models without a copy "
-                             "head decode the same either way.")
+# how a model with a copy head (copy_radius) turns its copy-or-new mixture into tokens, per decoding mode:
+# (flag, when it applies, what "joint" does)
+TOKEN_CHOICES = (
+    ("--greedy_tokens", "greedy decoding (--temperature 0) picks",
+     "the most probable whole token of the mixture; factored: each factor's argmax of the per-factor marginals"),
+    ("--sampled_tokens", "sampling (--temperature > 0) draws",
+     "a whole token from the mixture (an option, then for a new token the readout's factors); factored: each factor "
+     "on its own from the per-factor marginals"),
+)
 
 
-def add_sampled_tokens_arg(parser) -> None:
-    """--sampled_tokens of the scripts that decode with a dynamics model (STMaskGIT.set_joint_sampling)."""
-    parser.add_argument("--sampled_tokens", choices=("joint", "factored"), default="joint",
-                        help="How sampling (--temperature > 0) draws each token of a model with a copy head "
-                             "(copy_radius): joint: a whole token from its copy-or-new mixture (an option, then "
-                             "for a new token the readout's factors); factored: each factor on its own from the "
-                             "per-factor marginals (the earlier behaviour; it can pair two neighbours' factors "
-                             "into a token neither holds). Models without a copy head sample the same either way.")
+def add_token_choice_args(parser) -> None:
+    """--greedy_tokens and --sampled_tokens of the scripts that decode with a dynamics model
+    (STMaskGIT.set_joint_greedy, STMaskGIT.set_joint_sampling)."""
+    for flag, when, joint in TOKEN_CHOICES:
+        parser.add_argument(flag, choices=("joint", "factored"), default="joint",
+                            help=f"How {when} each token of a model with a copy head (copy_radius): joint: {joint} "
+                                 f"(the earlier behaviour; it can pair two neighbours' factors into a token neither "
+                                 f"holds). Models without a copy head decode the same either way.")
 
 
 def add_num_threads_arg(parser) -> None:

@@ -28,8 +28,7 @@ import torch
 from einops import rearrange
 from tqdm.auto import tqdm
 
-from common.cli import (add_device_arg, add_greedy_tokens_arg, add_sampled_tokens_arg, resolve_device,
-                        setup_logging)
+from common.cli import add_device_arg, add_token_choice_args, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
@@ -76,8 +75,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
                         "(e^bias times the copy weight). > 0 gives sharper futures closer to the previous frame; "
                         "0 is the model as trained.")
-    add_greedy_tokens_arg(p)
-    add_sampled_tokens_arg(p)
+    add_token_choice_args(p)
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
                    help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
     add_device_arg(p)
