@@ -334,22 +334,17 @@ def token_statistics(pred_NhHW: torch.Tensor, last_NHW: torch.Tensor, future_NhH
     return stats
 
 
-TOKEN_STATISTICS = ("rollout_unchanged", "true_unchanged", "rollout_repeated", "true_repeated")
-
-
 def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_time: Optional[float]) -> dict:
     """The rollout JSON line (module doc) from per-horizon score sums {"rollout_psnr": (h,), ...} over windows."""
     result = {"protocol": "rollout", "num_prompt_frames": num_prompt_frames}
     keys = [f"{name}_{metric}" for metric in ("psnr", "ssim", "lpips") for name in ("rollout", "hold")]
+    keys += [f"{name}_{stat}" for stat in ("unchanged", "repeated") for name in ("rollout", "true")]  # token_statistics
     for key in keys:  # LPIPS is missing from the sums with --skip_lpips
         result[key] = (sums[key] / num_examples).tolist() if key in sums and num_examples else None
     for key in keys:
         result[f"{key}_mean"] = None if result[key] is None else sum(result[key]) / len(result[key])
     for name in ("rollout", "hold"):
         result[f"{name}_far_psnr"] = None if result[f"{name}_psnr"] is None else result[f"{name}_psnr"][-1]
-    for key in TOKEN_STATISTICS:
-        result[key] = (sums[key] / num_examples).tolist() if key in sums and num_examples else None
-        result[f"{key}_mean"] = None if result[key] is None else sum(result[key]) / len(result[key])
     result["gen_time"] = gen_time
     result["num_examples"] = num_examples
     return result
