@@ -47,7 +47,7 @@ prompt frame (P - 1) for every horizon. The JSON line holds only these keys (no 
   true_repeated: the share equal to their left neighbour in the same frame. A rollout that freezes shows
   unchanged rising towards 1, one that flattens into uniform patches shows repeated far above the true frames';
   each with its _mean over horizons;
-- maskgit_steps, temperature, copy_bias: the sampler that generated them;
+- maskgit_steps, temperature, copy_bias, greedy_tokens, sampled_tokens: the sampler that generated them;
 - gen_time: seconds per generated frame (tokens only, as above); num_examples: windows evaluated.
 """
 import argparse
@@ -384,7 +384,8 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
         progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
     return {**rollout_result(sums, num_examples, P, gen_time.mean), "maskgit_steps": args.maskgit_steps,
-            "temperature": args.temperature, "copy_bias": args.copy_bias}
+            "temperature": args.temperature, "copy_bias": args.copy_bias, "greedy_tokens": args.greedy_tokens,
+            "sampled_tokens": args.sampled_tokens}
 
 
 @torch.no_grad()
@@ -511,7 +512,7 @@ def run(args: argparse.Namespace) -> dict:
     if args.copy_bias and model.copy_head is None:
         raise DataMismatchError(f"--copy_bias: the checkpoint {args.checkpoint_dir} has no copy head (copy_radius)")
     model.set_copy_bias(args.copy_bias)
-    model.set_joint_greedy(args.greedy_tokens == "joint")
+    model.set_greedy_tokens(args.greedy_tokens)
     model.set_joint_sampling(args.sampled_tokens == "joint")
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
                               filter_overlaps=True)

@@ -9,12 +9,14 @@
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
 #   4. evaluate with the challenge metrics, the copy-the-last-frame baselines and the rollout protocol (greedy, and
 #      sampled: whole tokens at temperature 1) -> data/genie_model/*.json
-# Futures are decoded with the pointer's --copy_bias 2 (COPY_BIAS).
+# Futures are decoded with the pointer's --copy_bias 2 (COPY_BIAS), greedy copies from the single most weighted
+# neighbour (--greedy_tokens best_neighbour, GREEDY_TOKENS).
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
 # variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, GENERATE_ARGS (extra generate.py flags;
 # set it empty for a GENIE_CONFIG without actions, e.g. GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=),
 # EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations),
-# SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout evaluation) and COPY_BIAS change the defaults below.
+# SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout evaluation), COPY_BIAS and GREEDY_TOKENS change the
+# defaults below.
 # When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated
 # there (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json, metrics_rollout_sampled_unseen.json.
 set -euo pipefail
@@ -25,9 +27,11 @@ OUT=${OUT:-data/genie_model}
 GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/sample_world_actions.json}
 TRAIN=$SAMPLE_DIR/train
 VAL=$SAMPLE_DIR/val
-# the pointer's decoding bias of the generated futures (GIF, comic, rollouts): its neighbours weighted e^2 against a
-# new token, sharper futures at the same PSNR (README); COPY_BIAS=0 for a model without the pointer (copy_radius)
-DECODE_ARGS="--copy_bias ${COPY_BIAS:-2}"
+# how the generated futures are decoded (GIF, comic, rollouts): the pointer's neighbours weighted e^2 against a new
+# token, and a greedy copy takes the single most weighted neighbour's token (not the token with the most summed
+# weight, which grows flat patches): sharper futures at the same PSNR (README). COPY_BIAS=0 for a model without the
+# pointer (copy_radius); GREEDY_TOKENS=joint decodes greedy futures as the model's most probable tokens.
+DECODE_ARGS="--copy_bias ${COPY_BIAS:-2} --greedy_tokens ${GREEDY_TOKENS:-best_neighbour}"
 [ -f "$TRAIN/metadata.json" ] || { echo "run_sample.sh: $TRAIN is missing; run ./build.sh first" >&2; exit 1; }
 
 "$PY" train.py --genie_config "$GENIE_CONFIG" --train_data_dir "$TRAIN" --val_data_dir "$VAL" \

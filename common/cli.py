@@ -47,24 +47,30 @@ def add_device_arg(parser, help: str = "torch device: auto (cuda when available,
 
 
 # how a model with a copy head (copy_radius) turns its copy-or-new mixture into tokens, per decoding mode:
-# (flag, when it applies, what "joint" does)
+# (flag, when it applies, its choices, what each does; the first is the default)
 TOKEN_CHOICES = (
-    ("--greedy_tokens", "greedy decoding (--temperature 0) picks",
-     "the most probable whole token of the mixture; factored: each factor's argmax of the per-factor marginals"),
-    ("--sampled_tokens", "sampling (--temperature > 0) draws",
-     "a whole token from the mixture (an option, then for a new token the readout's factors); factored: each factor "
-     "on its own from the per-factor marginals"),
+    ("--greedy_tokens", "greedy decoding (--temperature 0) picks", {
+        "joint": "the most probable whole token of the mixture",
+        "factored": "each factor's argmax of the per-factor marginals (the earlier behaviour; it can pair two "
+                    "neighbours' factors into a token neither holds)",
+        "best_neighbour": "as joint, but a copy takes the single most weighted neighbour's token, not the token "
+                          "with the most weight summed over the neighbours holding it (which grows flat patches "
+                          "in rollouts)"}),
+    ("--sampled_tokens", "sampling (--temperature > 0) draws", {
+        "joint": "a whole token from the mixture (an option, then for a new token the readout's factors)",
+        "factored": "each factor on its own from the per-factor marginals (the earlier behaviour; it can pair two "
+                    "neighbours' factors into a token neither holds)"}),
 )
 
 
 def add_token_choice_args(parser) -> None:
     """--greedy_tokens and --sampled_tokens of the scripts that decode with a dynamics model
-    (STMaskGIT.set_joint_greedy, STMaskGIT.set_joint_sampling)."""
-    for flag, when, joint in TOKEN_CHOICES:
-        parser.add_argument(flag, choices=("joint", "factored"), default="joint",
-                            help=f"How {when} each token of a model with a copy head (copy_radius): joint: {joint} "
-                                 f"(the earlier behaviour; it can pair two neighbours' factors into a token neither "
-                                 f"holds). Models without a copy head decode the same either way.")
+    (STMaskGIT.set_greedy_tokens, STMaskGIT.set_joint_sampling)."""
+    for flag, when, choices in TOKEN_CHOICES:
+        described = "; ".join(f"{name}: {what}" for name, what in choices.items())
+        parser.add_argument(flag, choices=tuple(choices), default=next(iter(choices)),
+                            help=f"How {when} each token of a model with a copy head (copy_radius): {described}. "
+                                 f"Models without a copy head decode the same either way.")
 
 
 def add_num_threads_arg(parser) -> None:

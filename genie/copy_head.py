@@ -41,8 +41,10 @@ class CopyHead(nn.Module):
         self.score_proj = nn.Linear(d_model, self.num_sources + 1)
         # opt-in (GenieConfig.copy_match_input): embedding of which neighbours hold a given token's own value
         self.match_proj = nn.Linear(self.num_sources, d_model, bias=False) if match_input else None
-        # decoding setting, not a weight (STMaskGIT.set_copy_bias): added to every neighbour's score
+        # decoding settings, not weights (STMaskGIT.set_copy_bias, STMaskGIT.set_greedy_tokens): added to every
+        # neighbour's score; whether `mode`'s copies take the single most weighted neighbour
         self.copy_bias = 0.0
+        self.best_neighbour_copies = False
 
     def sources(self, prev_BTHW: torch.Tensor) -> torch.Tensor:
         """Previous-frame token ids (B, T, H, W) (mask_token_id where unknown) -> the K neighbours of every
@@ -85,6 +87,12 @@ class CopyHead(nn.Module):
         mixture gives token c the probability w_new * prod_f softmax(readout_f)(c_f) + sum_k w_k [neighbour_k = c],
         so its mode is one of the offered neighbours' tokens or the readout's own factor-wise mode (every other
         token has no copy mass and a lower readout probability).
+
+        With best_neighbour_copies set (a decoding setting, STMaskGIT.set_greedy_tokens), the mode still decides
+        between a copy and the readout's token, but a copy takes the token of the single most weighted neighbour
+        instead of the token with the most weight summed over the neighbours holding it. The sum favours whatever
+        token fills the neighbourhood, a majority filter: applied frame after frame in a rollout, it grows flat
+        patches where the pointer is unsure where the content comes from. One neighbour's token is a displacement.
         """
         return self._mode(sources_NK, *self._parts(logits_NVF, hidden_NC, sources_NK))
 
@@ -143,6 +151,9 @@ class CopyHead(nn.Module):
             w_copy_NK * (sources_NK == readout_mode_N.unsqueeze(-1))).sum(-1)
         p_best_neighbour_N, k_N = p_neighbour_NK.max(dim=-1)
         use_neighbour_N = p_best_neighbour_N > p_readout_N
+        if self.best_neighbour_copies:  # log weights are -inf where not offered (none offered: no copy is used)
+            k_N = log_weights[..., :-1].argmax(dim=-1)
+            p_best_neighbour_N = p_neighbour_NK.gather(-1, k_N.unsqueeze(-1)).squeeze(-1)
         ids_N = torch.where(use_neighbour_N, sources_NK.gather(-1, k_N.unsqueeze(-1)).squeeze(-1), readout_mode_N)
         return ids_N, torch.where(use_neighbour_N, p_best_neighbour_N, p_readout_N)
 

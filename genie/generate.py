@@ -200,7 +200,7 @@ def generate(args) -> dict:
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride)
     check_compatible(model, dataset, args)
     model.set_copy_bias(args.copy_bias)
-    model.set_joint_greedy(args.greedy_tokens == "joint")
+    model.set_greedy_tokens(args.greedy_tokens)
     model.set_joint_sampling(args.sampled_tokens == "joint")
     s, P, T = dataset.metadata["s"], args.num_prompt_frames, args.window_size
     generator = torch.Generator(device).manual_seed(args.seed)

@@ -27,6 +27,8 @@ from genie.masking import MaskGITBatch
 from genie.sampling import Prediction
 from genie.transformer import STTransformer, TemporalMode
 
+# how greedy decoding turns a copy head's mixture into tokens (STMaskGIT.set_greedy_tokens)
+GREEDY_TOKENS = ("joint", "factored", "best_neighbour")
 MUP_BASE_D_MODEL = 256  # the published muP base shape (set_mup_shapes hard-codes d_model 256)
 
 
@@ -70,7 +72,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.copy_head = None if config.copy_radius is None else CopyHead(
             config.d_model, config.copy_radius, config.num_factored_vocabs, config.factored_vocab_size,
             config.mask_token_id, config.copy_match_input)
-        # decoding settings (set_joint_greedy, set_joint_sampling), not weights
+        # decoding settings (set_greedy_tokens, set_joint_sampling), not weights
         self.joint_greedy = True
         self.joint_sampling = True
 
@@ -168,13 +170,24 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             return
         self.copy_head.copy_bias = float(bias)
 
-    def set_joint_greedy(self, enabled: bool) -> None:
-        """Decoding setting of a model with a copy head: greedy decoding (temperature 0) takes the mixture's most
-        probable whole token (True, the default; `CopyHead.mode`) or each factor's argmax of the per-factor
-        marginals (False; what this code did before, and a token no option proposed when the copy weight is
-        spread over neighbours). No effect on a model without a copy head, whose distribution is a product over
-        factors; not saved with the weights."""
-        self.joint_greedy = bool(enabled)
+    def set_greedy_tokens(self, choice: str) -> None:
+        """Decoding setting of a model with a copy head: how greedy decoding (temperature 0) turns the copy-or-new
+        mixture into tokens (GREEDY_TOKENS):
+
+        - "joint" (the default): the mixture's most probable whole token (`CopyHead.mode`);
+        - "factored": each factor's argmax of the per-factor marginals (what this code did before; a token no
+          option proposed when the copy weight is spread over neighbours);
+        - "best_neighbour": "joint"'s choice between a copy and a new token, but a copy takes the single most
+          weighted neighbour's token rather than the token with the most weight summed over the neighbours holding
+          it (which grows flat patches in rollouts; `CopyHead.mode`).
+
+        No effect on a model without a copy head, whose distribution is a product over factors; not saved with the
+        weights."""
+        if choice not in GREEDY_TOKENS:
+            raise ValueError(f"greedy tokens must be one of {GREEDY_TOKENS}, got {choice!r}")
+        self.joint_greedy = choice != "factored"
+        if self.copy_head is not None:
+            self.copy_head.best_neighbour_copies = choice == "best_neighbour"
 
     def set_joint_sampling(self, enabled: bool) -> None:
         """Decoding setting of a model with a copy head: sampling at a temperature draws whole tokens from the

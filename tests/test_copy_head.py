@@ -4,11 +4,13 @@ import json
 import pytest
 import torch
 
+from common.cli import TOKEN_CHOICES
 from common.config import ConfigError
 from genie import GenieConfig, STMaskGIT
 from genie.copy_head import CopyHead, previous_frames
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.inference import generate, teacher_forced
+from genie.model import GREEDY_TOKENS
 from genie.reference import dense_copy_mixture, generate_uncached, teacher_forced_uncached
 from genie.sampling import sample_mixture_tokens
 
@@ -265,6 +267,44 @@ def test_mode_is_the_most_probable_whole_token_of_the_mixture(copy_bias):
     assert (joint.gather(1, factor_wise[:, None])[:, 0] <= probs + 1e-6).all()
 
 
+def test_best_neighbour_copies_take_the_single_most_weighted_neighbour():
+    torch.manual_seed(6)
+    head = CopyHead(d_model=8, radius=1, num_factored_vocabs=F_, factored_vocab_size=V, mask_token_id=MASK)
+    N, K = 400, 9
+    logits, hidden = torch.randn(N, V, F_) * 2, torch.randn(N, 8) * 2
+    # a few tokens repeated over the neighbours: their summed weight often beats the single heaviest neighbour's
+    sources = torch.tensor([3, 70, 200, 4000])[torch.randint(0, 4, (N, K))]
+    sources[:40, :5] = MASK  # some not offered
+    sources[40:50] = MASK  # none offered: the readout's own mode
+    with torch.no_grad():
+        joint_ids, _ = head.mode(logits, hidden, sources)
+        head.best_neighbour_copies = True
+        ids, probs = head.mode(logits, hidden, sources)
+        joint = joint_mixture_probs(head, logits, hidden, sources)
+        weights = head.log_weights(hidden, sources != MASK)[:, :K]
+    readout_mode = unfactorize_token_ids(logits.argmax(dim=1), F_, V)
+    neighbour_probs = joint.gather(1, sources.clamp(max=MASK - 1)).masked_fill(sources == MASK, -1.0)
+    copies = neighbour_probs.max(dim=1).values > joint.gather(1, readout_mode[:, None])[:, 0]
+    heaviest = sources.gather(1, weights.argmax(dim=1, keepdim=True))[:, 0]
+    # the joint mode's choice between a copy and the readout's token; a copy is the heaviest neighbour's token
+    torch.testing.assert_close(ids, torch.where(copies, heaviest, readout_mode), atol=0, rtol=0)
+    torch.testing.assert_close(probs, joint.gather(1, ids[:, None])[:, 0])  # the mixture's probability of it
+    assert copies.any() and (~copies).any() and not copies[40:50].any()
+    assert (ids != joint_ids).any()
+
+
+def test_greedy_token_choices_are_checked_and_match_the_scripts_flags():
+    model = tiny_copy_model()
+    with pytest.raises(ValueError, match="greedy tokens must be one of"):
+        model.set_greedy_tokens("nearest")
+    flags = {flag: tuple(choices) for flag, _, choices in TOKEN_CHOICES}
+    assert flags["--greedy_tokens"] == GREEDY_TOKENS and flags["--greedy_tokens"][0] == "joint"
+    model.set_greedy_tokens("best_neighbour")
+    assert model.copy_head.best_neighbour_copies and model.joint_greedy
+    model.set_greedy_tokens("factored")
+    assert not model.copy_head.best_neighbour_copies and not model.joint_greedy
+
+
 def test_greedy_decoding_takes_the_joint_mode_unless_set_to_factored():
     model = tiny_copy_model(radius=1, seed=4, match=True)
 
@@ -286,7 +326,7 @@ def test_greedy_decoding_takes_the_joint_mode_unless_set_to_factored():
         joint, joint_tf = generate(model, x[:, :2], 3, generator=gen())[0], teacher_forced(model, x, generator=gen())[0]
         torch.testing.assert_close(joint_tf, teacher_forced_uncached(model, x, generator=gen())[0], atol=0, rtol=0)
         torch.testing.assert_close(joint, generate_uncached(model, x[:, :2], 3, generator=gen())[0], atol=0, rtol=0)
-        model.set_joint_greedy(False)
+        model.set_greedy_tokens("factored")
         torch.testing.assert_close(generate(model, x[:, :2], 1, maskgit_steps=1)[0][:, 2], factor_wise, atol=0,
                                    rtol=0)
         factored = generate(model, x[:, :2], 3, generator=gen())[0]
@@ -296,9 +336,31 @@ def test_greedy_decoding_takes_the_joint_mode_unless_set_to_factored():
         assert not torch.equal(joint_tf, teacher_forced(model, x, generator=gen())[0])
         # sampling at a temperature does not read the greedy setting
         drawn = generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0]
-        model.set_joint_greedy(True)
+        model.set_greedy_tokens("joint")
         torch.testing.assert_close(generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0], drawn, atol=0,
                                    rtol=0)
+
+
+def test_best_neighbour_rollouts_agree_cached_and_uncached_and_differ_from_joint():
+    model = tiny_copy_model(radius=1, seed=4, match=True)
+    with torch.no_grad():  # weights spread over the neighbours (the tiny model's are peaked), copies preferred
+        model.copy_head.score_proj.weight.mul_(0.05)
+    model.set_copy_bias(3.0)
+    torch.manual_seed(1)
+    # a few tokens repeated over the frames, so that the neighbours' summed weights and the heaviest one disagree
+    x = torch.tensor([5, 300, 1000, 2500])[torch.randint(0, 4, (4, 6, 4, 4))]
+
+    def rollouts():
+        with torch.no_grad():
+            return (generate(model, x[:, :2], 3, generator=torch.Generator().manual_seed(0))[0],
+                    generate_uncached(model, x[:, :2], 3, generator=torch.Generator().manual_seed(0))[0])
+
+    joint, _ = rollouts()
+    model.set_greedy_tokens("best_neighbour")
+    best, best_uncached = rollouts()
+    torch.testing.assert_close(best, best_uncached, atol=0, rtol=0)
+    torch.testing.assert_close(best[:, :2], x[:, :2], atol=0, rtol=0)
+    assert not torch.equal(best, joint)
 
 
 def test_sampling_draws_whole_tokens_unless_set_to_factored():

@@ -27,7 +27,8 @@ JSON_KEYS = {"loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time", "n
 ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold")
                        for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
 ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
-                                     "gen_time", "num_examples", "maskgit_steps", "temperature", "copy_bias"} | {
+                                     "gen_time", "num_examples", "maskgit_steps", "temperature", "copy_bias",
+                                     "greedy_tokens", "sampled_tokens"} | {
     f"{name}_{stat}{suffix}" for name in ("rollout", "true") for stat in ("unchanged", "repeated")
     for suffix in ("", "_mean")}
 
@@ -386,13 +387,19 @@ def test_rollout_needs_a_tokenizer_even_with_skip_lpips(tiny, tmp_path, capsys):
     assert "decodes frames for PSNR and SSIM" in captured.err and captured.out == ""
 
 
-@pytest.mark.parametrize("name, setter", [("greedy_tokens", "set_joint_greedy"),
-                                          ("sampled_tokens", "set_joint_sampling")])
-@pytest.mark.parametrize("choice", [None, "joint", "factored"])
-def test_token_choice_flags_set_the_models_decoding(tiny, capsys, monkeypatch, name, setter, choice):
+TOKEN_CHOICE_CASES = [  # (flag, the model's setter, the flag's value (None: left out), what the setter gets)
+    ("greedy_tokens", "set_greedy_tokens", None, "joint"), ("greedy_tokens", "set_greedy_tokens", "joint", "joint"),
+    ("greedy_tokens", "set_greedy_tokens", "factored", "factored"),
+    ("greedy_tokens", "set_greedy_tokens", "best_neighbour", "best_neighbour"),
+    ("sampled_tokens", "set_joint_sampling", None, True), ("sampled_tokens", "set_joint_sampling", "joint", True),
+    ("sampled_tokens", "set_joint_sampling", "factored", False)]
+
+
+@pytest.mark.parametrize("name, setter, choice, expected", TOKEN_CHOICE_CASES)
+def test_token_choice_flags_set_the_models_decoding(tiny, capsys, monkeypatch, name, setter, choice, expected):
     settings = []
     real = getattr(STMaskGIT, setter)
-    monkeypatch.setattr(STMaskGIT, setter, lambda model, enabled: settings.append(enabled) or real(model, enabled))
+    monkeypatch.setattr(STMaskGIT, setter, lambda model, value: settings.append(value) or real(model, value))
     flag = () if choice is None else (f"--{name}", choice)
     assert main(eval_args(tiny.data, tiny.ckpt, "--skip_lpips", "--max_examples", "1", *flag)) == 0
-    assert settings == [choice != "factored"]
+    assert settings == [expected]

@@ -122,19 +122,23 @@ def test_metadata_is_valid_json_with_generation_settings(setup, tmp_path):
     assert meta["frames_per_example"] == 2 * T - P and meta["num_examples"] == 1
 
 
-@pytest.mark.parametrize("name, setter", [("greedy_tokens", "set_joint_greedy"),
-                                          ("sampled_tokens", "set_joint_sampling")])
-@pytest.mark.parametrize("choice", ["joint", "factored"])
-def test_token_choices_reach_a_copy_model_and_its_metadata(setup, tmp_path, monkeypatch, name, setter, choice):
+@pytest.mark.parametrize("name, setter, choice, expected", [
+    ("greedy_tokens", "set_greedy_tokens", "joint", "joint"),
+    ("greedy_tokens", "set_greedy_tokens", "factored", "factored"),
+    ("greedy_tokens", "set_greedy_tokens", "best_neighbour", "best_neighbour"),
+    ("sampled_tokens", "set_joint_sampling", "joint", True),
+    ("sampled_tokens", "set_joint_sampling", "factored", False)])
+def test_token_choices_reach_a_copy_model_and_its_metadata(setup, tmp_path, monkeypatch, name, setter, choice,
+                                                           expected):
     torch.manual_seed(0)
     model = STMaskGIT(GenieConfig(**TINY, copy_radius=1))
     model.init_weights()
     model.save_pretrained(tmp_path / "copy_ckpt")
     settings = []
     real = getattr(STMaskGIT, setter)
-    monkeypatch.setattr(STMaskGIT, setter, lambda m, enabled: settings.append(enabled) or real(m, enabled))
+    monkeypatch.setattr(STMaskGIT, setter, lambda m, value: settings.append(value) or real(m, value))
     generate.main(["--val_data_dir", str(setup / "val"), "--checkpoint_dir", str(tmp_path / "copy_ckpt"),
                    "--output_dir", str(tmp_path / "out"), "--window_size", str(T), "--num_prompt_frames", str(P),
                    "--stride", "1", "--device", "cpu", f"--{name}", choice])
-    assert settings == [choice == "joint"]
+    assert settings == [expected]
     assert read_metadata(tmp_path / "out")[name] == choice

@@ -49,6 +49,7 @@ def test_main_job_pipeline_tiny(tmp_path):
     assert saved["action_step_mean"] and len(saved["action_mean"]) == 7  # statistics filled in from the data
     generated = json.loads((out / "generated" / "metadata.json").read_text())
     assert generated["actions_from_data"] and generated["copy_bias"] == 2.0
+    assert generated["greedy_tokens"] == "best_neighbour"
     gifs, pngs = list(out.glob("*.gif")), list(out.glob("*.png"))
     assert gifs and pngs
     assert Image.open(gifs[0]).n_frames > 1
@@ -61,7 +62,8 @@ def test_main_job_pipeline_tiny(tmp_path):
     assert (rollout["protocol"], rollout["num_prompt_frames"], rollout["num_examples"]) == ("rollout", 8, 1)
     assert len(rollout["rollout_psnr"]) == len(rollout["hold_ssim"]) == 16 - 8
     assert rollout["rollout_far_psnr"] == rollout["rollout_psnr"][-1] and rollout["rollout_lpips"] is None
-    assert (rollout["temperature"], rollout["copy_bias"]) == (0.0, 2.0)  # greedy, the pointer's decoding bias
+    # greedy, the pointer's decoding bias, copies from the single most weighted neighbour
+    assert (rollout["temperature"], rollout["copy_bias"], rollout["greedy_tokens"]) == (0.0, 2.0, "best_neighbour")
     sampled = json.loads((out / "metrics_rollout_sampled.json").read_text())
     assert (sampled["temperature"], sampled["copy_bias"], sampled["num_examples"]) == (1.0, 2.0, 1)
     assert json.loads((out / "metrics_rollout_sampled_unseen.json").read_text())["temperature"] == 1.0
