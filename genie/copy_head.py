@@ -106,6 +106,14 @@ class CopyHead(nn.Module):
         log_weights = parts[1]
         return self._mixture(*parts), ids_N, probs_N, log_weights
 
+    @torch.no_grad()
+    def forward_and_log_weights(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor,
+                                sources_NK: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """`forward` and the log mixture weights (..., K + 1) (inference at a temperature: what drawing whole
+        tokens needs, without `mode`'s work)."""
+        parts = self._parts(logits_NVF, hidden_NC, sources_NK)
+        return self._mixture(*parts), parts[1]
+
     def _parts(self, logits_NVF: torch.Tensor, hidden_NC: torch.Tensor, sources_NK: torch.Tensor):
         """What the mixture and its mode are computed from: which neighbours are offered (..., K), the log weights
         (..., K + 1), the neighbours' factors (..., F, K) and the readout's log-probabilities (..., F, V)."""

@@ -12,7 +12,7 @@ from einops import rearrange
 
 from genie.copy_head import previous_frames
 from genie.kv_cache import TemporalKVCache
-from genie.sampling import LOGITS_LAYOUT, Prediction, maskgit_sample
+from genie.sampling import GREEDY_TEMPERATURE, LOGITS_LAYOUT, Prediction, maskgit_sample
 from genie.transformer import TemporalMode
 
 
@@ -23,7 +23,7 @@ def _frames(cond_BTC: Optional[torch.Tensor], start: int, end: int) -> Optional[
 
 def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: TemporalKVCache,
                mode: TemporalMode = TemporalMode.APPEND, commit: int = 0,
-               cond_BTC: Optional[torch.Tensor] = None, with_mode: bool = False):
+               cond_BTC: Optional[torch.Tensor] = None, with_mode: bool = False, greedy: bool = True):
     """Run T frames at absolute positions first_frame.. against the frames in kv_cache.
 
     mode APPEND / PREFILL: the frames follow the cached ones (first_frame == kv_cache.length); `commit` of them
@@ -31,7 +31,8 @@ def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: Temporal
     cached frames < first_frame + i and to itself (the cache holds frames 0..T-1 and first_frame is 1).
     cond_BTC: action embeddings of these T frames (B, T, C), `model.action_embeds` of the window sliced to them.
     Returns factored logits (B, V, F, T, H, W), or None in PREFILL mode; with_mode: a `Prediction` of them with
-    the model's greedy tokens and their probabilities (B, T, H, W) where those are not the factor-wise argmax.
+    the model's greedy tokens and their probabilities (B, T, H, W) where those are not the factor-wise argmax
+    (greedy=False: without them, for a sampler at a temperature; `STMaskGIT.predict`).
     Inputs are not checked (ids the sampler produced: no device sync per step); `check_frames` does that.
     """
     sources_BTSK = _copy_sources(model, x_BTHW, first_frame, mode, kv_cache)
@@ -39,7 +40,7 @@ def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: Temporal
     kv_cache.commit(commit, x_BTHW)
     if x_BTSC is None:
         return None
-    return model.frames_prediction(x_BTSC, sources_BTSK, with_mode)
+    return model.frames_prediction(x_BTSC, sources_BTSK, with_mode, greedy)
 
 
 def frame_slice(prediction: Prediction, index) -> Prediction:
@@ -120,10 +121,12 @@ def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_step
     kv_cache = TemporalKVCache(model.config.num_layers, total)
     run_frames(model, prompt_BTHW, 0, kv_cache, TemporalMode.PREFILL, commit=T0, cond_BTC=_frames(cond_BTC, 0, T0))
     all_logits = []
+    greedy = temperature <= GREEDY_TEMPERATURE
     for t in range(T0, total):
         def logits_fn(frame_BHW):
             return frame_slice(run_frames(model, frame_BHW.unsqueeze(1), t, kv_cache,
-                                          cond_BTC=_frames(cond_BTC, t, t + 1), with_mode=True), 0)
+                                          cond_BTC=_frames(cond_BTC, t, t + 1), with_mode=True,
+                                          greedy=greedy), 0)
 
         sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], model.mask_token_id, maskgit_steps,
                                                   temperature, unmask_mode, generator)
@@ -174,7 +177,8 @@ def teacher_forced(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperat
     def logits_fn(frames_NHW):
         frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
         return targets_to_frames(run_frames(model, frames_BnHW, 1, kv_cache, TemporalMode.TARGETS,
-                                            cond_BTC=_frames(target_cond_BTC, 1, T), with_mode=True))
+                                            cond_BTC=_frames(target_cond_BTC, 1, T), with_mode=True,
+                                            greedy=temperature <= GREEDY_TEMPERATURE))
 
     return sample_targets(model, logits_fn, B, T, x_BTHW, maskgit_steps, temperature, unmask_mode, generator)
 

@@ -205,10 +205,11 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         return self.predict(x_NC, sources_NK, with_mode=False).logits
 
     def predict(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None,
-                with_mode: bool = True) -> Prediction:
+                with_mode: bool = True, greedy: bool = True) -> Prediction:
         """`readout`, plus, for a copy head's mixture (with_mode), what decoding takes instead of the factor-wise
         logits: the most probable whole tokens (...) and their probabilities (...) (`CopyHead.mode`; joint_greedy)
-        and the mixture's parts for drawing whole tokens (joint_sampling)."""
+        and the mixture's parts for drawing whole tokens (joint_sampling). greedy=False (a sampler at a
+        temperature, which never reads the mode) skips the mode's computation and returns only the parts."""
         x_scaled = x_NC if self.readout_width_mult is None else x_NC / self.readout_width_mult
         logits = rearrange(self.out_x_proj(x_scaled), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
         if self.copy_head is None:
@@ -217,6 +218,11 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             raise ValueError("this model copies from the previous frame (copy_radius is set): pass copy_sources")
         if not (with_mode and (self.joint_greedy or self.joint_sampling)):
             return Prediction(self.copy_head(logits, x_NC, sources_NK))
+        if not greedy:
+            if not self.joint_sampling:
+                return Prediction(self.copy_head(logits, x_NC, sources_NK))
+            mixture, log_weights = self.copy_head.forward_and_log_weights(logits, x_NC, sources_NK)
+            return Prediction(mixture, None, None, log_weights, sources_NK, logits)
         mixture, ids, probs, log_weights = self.copy_head.forward_and_mode(logits, x_NC, sources_NK)
         greedy = (ids, probs) if self.joint_greedy else (None, None)
         sampling = (log_weights, sources_NK, logits) if self.joint_sampling else (None, None, None)
@@ -242,12 +248,13 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
                                       with_mode)
 
     def frames_prediction(self, x_BTSC: torch.Tensor, sources_BTSK: Optional[torch.Tensor],
-                          with_mode: bool = False):
+                          with_mode: bool = False, greedy: bool = True):
         """Final hidden states (B, T, S, C) -> factored logits (B, V, F, T, H, W); with_mode: a `Prediction` of
-        them, with the greedy tokens and their probabilities (B, T, H, W) and the copy mixture's parts
-        ((B, T, H, W, K + 1), (B, T, H, W, K), (B, V, F, T, H, W)) where the model has them (else None)."""
+        them, with the greedy tokens and their probabilities (B, T, H, W) (unless greedy=False, `predict`) and the
+        copy mixture's parts ((B, T, H, W, K + 1), (B, T, H, W, K), (B, V, F, T, H, W)) where the model has them
+        (else None)."""
         H = self.config.H
-        prediction = self.predict(x_BTSC, sources_BTSK, with_mode).map(
+        prediction = self.predict(x_BTSC, sources_BTSK, with_mode, greedy).map(
             lambda v: rearrange(v, "B T (H W) V F -> B V F T H W", H=H),
             lambda v: rearrange(v, "B T (H W) ... -> B T H W ...", H=H))
         return prediction if with_mode else prediction.logits

@@ -405,3 +405,22 @@ def test_whole_token_draws_follow_the_mixture(temperature):
             expected = tempered[:-1][sources[0] == token].sum() + tempered[-1] * logits[0].softmax(0)[
                 factorize_token_ids(torch.tensor(token), F_, V), torch.arange(F_)].prod()
             assert abs(counts[token] - expected) < 0.015
+
+
+@pytest.mark.parametrize("joint_sampling", [True, False])
+def test_a_sampler_gets_the_mixture_and_its_parts_without_the_mode(joint_sampling):
+    model = tiny_copy_model(radius=1, seed=7, match=True)
+    model.set_joint_sampling(joint_sampling)
+    x = torch.randint(0, MASK, (2, 3, 4, 4), generator=torch.Generator().manual_seed(1))
+    sources = model.window_copy_sources(x)
+    with torch.no_grad():
+        hidden = model.hidden_states(x, sources_BTSK=sources)
+        full = model.predict(hidden, sources)
+        lean = model.predict(hidden, sources, greedy=False)
+    assert full.mode_ids is not None and lean.mode_ids is None and lean.mode_probs is None
+    torch.testing.assert_close(lean.logits, full.logits, atol=0, rtol=0)
+    for name in ("copy_log_weights", "copy_sources", "readout_logits"):
+        if joint_sampling:
+            torch.testing.assert_close(getattr(lean, name), getattr(full, name), atol=0, rtol=0)
+        else:
+            assert getattr(lean, name) is None
