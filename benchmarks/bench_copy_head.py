@@ -15,7 +15,7 @@ argmax of the sparse mixture (`--greedy_tokens factored`) and the mode with copi
 neighbour (`--greedy_tokens best_neighbour`); and what sampling at temperature 1 adds:
 genie.sampling.sample_mixture_tokens (whole tokens, the default) next to sample_factored_tokens over the mixture's
 marginals (`--sampled_tokens factored`), and next to the same draws with the greedy mode computed too (which
-sampling never reads; inference skipped it from this benchmark's last change on: `STMaskGIT.predict(greedy=False)`).
+sampling never reads, so inference at a temperature skips it: `STMaskGIT.predict(greedy=False)`).
 """
 import argparse
 import time

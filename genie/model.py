@@ -224,9 +224,9 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             mixture, log_weights = self.copy_head.forward_and_log_weights(logits, x_NC, sources_NK)
             return Prediction(mixture, None, None, log_weights, sources_NK, logits)
         mixture, ids, probs, log_weights = self.copy_head.forward_and_mode(logits, x_NC, sources_NK)
-        greedy = (ids, probs) if self.joint_greedy else (None, None)
-        sampling = (log_weights, sources_NK, logits) if self.joint_sampling else (None, None, None)
-        return Prediction(mixture, *greedy, *sampling)
+        greedy_parts = (ids, probs) if self.joint_greedy else (None, None)
+        sampling_parts = (log_weights, sources_NK, logits) if self.joint_sampling else (None, None, None)
+        return Prediction(mixture, *greedy_parts, *sampling_parts)
 
     def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
                latent_actions: Optional[torch.Tensor] = None,
