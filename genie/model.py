@@ -208,25 +208,24 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
                 with_mode: bool = True, greedy: bool = True) -> Prediction:
         """`readout`, plus, for a copy head's mixture (with_mode), what decoding takes instead of the factor-wise
         logits: the most probable whole tokens (...) and their probabilities (...) (`CopyHead.mode`; joint_greedy)
-        and the mixture's parts for drawing whole tokens (joint_sampling). greedy=False (a sampler at a
-        temperature, which never reads the mode) skips the mode's computation and returns only the parts."""
+        and the mixture's parts for drawing whole tokens (joint_sampling). The mode is computed only when greedy
+        decoding reads it: not for greedy=False (a sampler at a temperature) nor with joint_greedy off."""
         x_scaled = x_NC if self.readout_width_mult is None else x_NC / self.readout_width_mult
         logits = rearrange(self.out_x_proj(x_scaled), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
         if self.copy_head is None:
             return Prediction(logits)
         if sources_NK is None:
             raise ValueError("this model copies from the previous frame (copy_radius is set): pass copy_sources")
-        if not (with_mode and (self.joint_greedy or self.joint_sampling)):
+        with_greedy, with_parts = with_mode and greedy and self.joint_greedy, with_mode and self.joint_sampling
+        if not (with_greedy or with_parts):
             return Prediction(self.copy_head(logits, x_NC, sources_NK))
-        if not greedy:
-            if not self.joint_sampling:
-                return Prediction(self.copy_head(logits, x_NC, sources_NK))
+        ids = probs = None
+        if with_greedy:
+            mixture, ids, probs, log_weights = self.copy_head.forward_and_mode(logits, x_NC, sources_NK)
+        else:
             mixture, log_weights = self.copy_head.forward_and_log_weights(logits, x_NC, sources_NK)
-            return Prediction(mixture, None, None, log_weights, sources_NK, logits)
-        mixture, ids, probs, log_weights = self.copy_head.forward_and_mode(logits, x_NC, sources_NK)
-        greedy_parts = (ids, probs) if self.joint_greedy else (None, None)
-        sampling_parts = (log_weights, sources_NK, logits) if self.joint_sampling else (None, None, None)
-        return Prediction(mixture, *greedy_parts, *sampling_parts)
+        sampling_parts = (log_weights, sources_NK, logits) if with_parts else (None, None, None)
+        return Prediction(mixture, ids, probs, *sampling_parts)
 
     def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
                latent_actions: Optional[torch.Tensor] = None,
