@@ -49,6 +49,14 @@ prompt frame (P - 1) for every horizon. The JSON line holds only these keys (no 
   each with its _mean over horizons;
 - maskgit_steps, temperature, copy_bias, greedy_tokens, sampled_tokens: the sampler that generated them;
 - gen_time: seconds per generated frame (tokens only, as above); num_examples: windows evaluated.
+
+Copy-ceiling protocol (--protocol copy_ceiling; no checkpoint is read): the rollout protocol's windows, prompt and
+scores, with the generated frames replaced by the best futures made only of whole-token copies, chosen knowing the
+true frames (genie/copy_ceiling.py): each token copied from a neighbour within --ceiling_radius positions in the
+ceiling's own frame before, one displacement per --ceiling_block x --ceiling_block tile of positions. A diagnostic of
+the previous-frame pointer: how good its copies could be. The JSON line has the rollout keys (rollout_* are the
+ceiling's frames; gen_time null) without the sampler's, plus radius, block and exact_share (the share of the
+ceiling's tokens that are the true ones).
 """
 import argparse
 import contextlib
@@ -72,6 +80,7 @@ from common.images import psnr, ssim
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.actions import LATENT_ACTION_NAME, latent_action_sidecar, prepare_action_streams, window_actions
 from genie.config import check_dataset_matches
+from genie.copy_ceiling import ceiling_rollout
 from genie.metrics import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
 from genie.inference import generate, teacher_forced
@@ -89,7 +98,7 @@ DEFAULT_TOKENIZER = "data/magvit2.ckpt"
 DEFAULT_TRAIN_DIR = "data/sample/train"
 BUTTONS_NAME = "buttons"  # the sample world's true actions, labels of the latent action probe
 LPIPS_CHUNK = 32  # frames per LPIPS / decoding call, bounds memory on CPU
-PROTOCOLS = ("teacher_forced", "rollout")
+PROTOCOLS = ("teacher_forced", "rollout", "copy_ceiling")
 DEFAULT_ROLLOUT_PROMPT_FRAMES = 8
 
 
@@ -110,9 +119,18 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--protocol", choices=PROTOCOLS, default="teacher_forced",
                         help="teacher_forced: the challenge's CE / accuracy / LPIPS protocol (default); rollout: "
                              "prompt with the first --num_prompt_frames frames, generate the rest free-running, "
-                             "report PSNR / SSIM / LPIPS per horizon against the hold-the-last-frame baseline.")
+                             "report PSNR / SSIM / LPIPS per horizon against the hold-the-last-frame baseline; "
+                             "copy_ceiling: the same scores for the best futures made only of copies of the frame "
+                             "before's nearby tokens, chosen knowing the truth (no checkpoint read).")
+    parser.add_argument("--ceiling_radius", type=int, default=None,
+                        help="copy_ceiling only: copies come from neighbours at most this many positions away in "
+                             "each direction (default 2; a pointer's copy_radius).")
+    parser.add_argument("--ceiling_block", type=int, default=None,
+                        help="copy_ceiling only: positions in each block x block tile share one displacement "
+                             "(default 1: every position its own; the frame's side: one shift of the whole frame). "
+                             "Must divide the frame's height and width in tokens.")
     parser.add_argument("--num_prompt_frames", type=int, default=None,
-                        help=f"Rollout only: ground-truth prompt frames P per window, 1 <= P < --window_size "
+                        help=f"Rollout and copy_ceiling only: ground-truth prompt frames P per window, 1 <= P < --window_size "
                              f"(default {DEFAULT_ROLLOUT_PROMPT_FRAMES}); the other window_size - P are generated.")
     parser.add_argument("--val_data_dir", default=None,
                         help=f"Token dataset to evaluate on (default: {DEFAULT_VAL_DIR}, or {SAMPLE_VAL_DIR} when "
@@ -169,7 +187,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--temperature must be >= 0")
     if args.window_size < 2:
         parser.error("--window_size must be >= 2 (frame 0 is the first prompt, frames 1.. are predicted)")
-    if args.protocol == "rollout":
+    if args.protocol == "copy_ceiling":
+        args.ceiling_radius = 2 if args.ceiling_radius is None else args.ceiling_radius
+        args.ceiling_block = 1 if args.ceiling_block is None else args.ceiling_block
+        if args.ceiling_radius < 0 or args.ceiling_block < 1:
+            parser.error(f"--ceiling_radius must be >= 0 and --ceiling_block >= 1, got {args.ceiling_radius} and "
+                         f"{args.ceiling_block}")
+    elif args.ceiling_radius is not None or args.ceiling_block is not None:
+        parser.error("--ceiling_radius and --ceiling_block apply to --protocol copy_ceiling only")
+    if args.protocol in ("rollout", "copy_ceiling"):
         if args.num_prompt_frames is None:
             args.num_prompt_frames = DEFAULT_ROLLOUT_PROMPT_FRAMES
         if not 1 <= args.num_prompt_frames < args.window_size:
@@ -177,10 +203,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                          f"one frame to generate in windows of --window_size {args.window_size}), got "
                          f"{args.num_prompt_frames}")
         if args.save_outputs_dir is not None:
-            parser.error("--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
-                         "rollout")
+            parser.error(f"--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
+                         f"{args.protocol}")
     elif args.num_prompt_frames is not None:
-        parser.error("--num_prompt_frames applies to --protocol rollout only")
+        parser.error("--num_prompt_frames applies to --protocol rollout and copy_ceiling only")
     if args.val_data_dir is None:
         args.val_data_dir = default_val_data_dir()
     return args
@@ -389,6 +415,44 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
 
 
 @torch.no_grad()
+def copy_ceiling_evaluate(loader, args: argparse.Namespace, device: torch.device, scorer: FrameScorer,
+                          num_bits: int) -> dict:
+    """The copy-ceiling protocol over `loader` (module doc): the rollout protocol's scores of
+    genie.copy_ceiling.ceiling_rollout's frames."""
+    P, with_lpips = args.num_prompt_frames, not args.skip_lpips
+    sums, num_examples, exact, num_tokens = {}, 0, 0, 0
+    for batch in tqdm(loader, desc="copy ceiling", unit="batch", file=sys.stderr):
+        x_BTHW = batch["tokens"].to(device).long()
+        tokens_BTHW, exact_B = ceiling_rollout(x_BTHW, P, args.ceiling_radius, args.ceiling_block, num_bits)
+        scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips)
+        scores.update(token_statistics(tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:]))
+        for key, values_Bh in scores.items():
+            sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
+        num_examples += x_BTHW.shape[0]
+        exact += int(exact_B.sum())
+        num_tokens += tokens_BTHW[:, P:].numel()
+    result = rollout_result(sums, num_examples, P, None)
+    return {**result, "protocol": "copy_ceiling", "radius": args.ceiling_radius, "block": args.ceiling_block,
+            "exact_share": exact / max(num_tokens, 1)}
+
+
+def run_copy_ceiling(args: argparse.Namespace, device: torch.device) -> dict:
+    """--protocol copy_ceiling: no model; the windows of --val_data_dir as the rollout protocol picks them."""
+    dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride,
+                              filter_overlaps=True)
+    h, w = dataset.metadata["h"], dataset.metadata["w"]
+    if h % args.ceiling_block or w % args.ceiling_block:
+        raise EvaluationError(f"--ceiling_block {args.ceiling_block} does not divide the {h} x {w} token frames of "
+                              f"{args.val_data_dir}")
+    indices = example_indices(len(dataset), args.max_examples, args.spread_examples)
+    loader = DataLoader(Subset(dataset, indices), batch_size=args.batch_size, shuffle=False)
+    logger.info("copy ceiling of %d windows of %s (radius %d, block %d)", len(indices), args.val_data_dir,
+                args.ceiling_radius, args.ceiling_block)
+    num_bits = (int(dataset.metadata["vocab_size"]) - 1).bit_length()
+    return copy_ceiling_evaluate(loader, args, device, frame_scorer(args, dataset, device), num_bits)
+
+
+@torch.no_grad()
 def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
                scorer: FrameScorer) -> float:
     """Genie's delta-PSNR: mean PSNR of frames generated with the ground truth's latent actions minus that with
@@ -483,7 +547,7 @@ def frame_scorer(args: argparse.Namespace, dataset: RawTokenDataset, device: tor
     try:
         return FrameScorer(tokenizer_ckpt, device, with_lpips=not args.skip_lpips)
     except (FileNotFoundError, ValueError) as e:  # missing tokenizer / LPIPS weights, unreadable checkpoint
-        if args.protocol == "rollout":
+        if args.protocol != "teacher_forced":
             raise EvaluationError(f"cannot set up decoding{'' if args.skip_lpips else ' + LPIPS'}: {e}\nThe rollout "
                                   f"protocol decodes frames for PSNR and SSIM: pass --tokenizer_ckpt (and "
                                   f"--skip_lpips to go without LPIPS weights).") from None
@@ -507,6 +571,8 @@ def run(args: argparse.Namespace) -> dict:
                               f"plain `python evaluate.py` (not torchrun / accelerate launch with several processes)")
     device = resolve_device(args.device)
     torch.manual_seed(args.seed)
+    if args.protocol == "copy_ceiling":
+        return run_copy_ceiling(args, device)
 
     model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device).eval()
     if args.copy_bias and model.copy_head is None:

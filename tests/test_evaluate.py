@@ -369,7 +369,7 @@ def test_rollout_protocol_json_line(tiny, capsys):
 @pytest.mark.parametrize("extra, message", [
     (["--protocol", "rollout", "--num_prompt_frames", "0"], "--num_prompt_frames must be in 1..7"),
     (["--protocol", "rollout", "--num_prompt_frames", "8"], "--num_prompt_frames must be in 1..7"),
-    (["--num_prompt_frames", "3"], "--protocol rollout only"),
+    (["--num_prompt_frames", "3"], "--protocol rollout and copy_ceiling only"),
     (["--protocol", "rollout", "--num_prompt_frames", "3", "--save_outputs_dir", "out"],
      "does not apply to --protocol rollout"),
 ])
