@@ -4,6 +4,7 @@ or, with --protocol rollout, the 1X sampling challenge's free-running rollout sc
 
     ./evaluate.py --val_data_dir data/val_v1.1 --checkpoint_dir 1x-technologies/GENIE_35M
     ./evaluate.py --protocol rollout --num_prompt_frames 8 --max_examples 48
+    ./evaluate.py --protocol copy_ceiling --ceiling_block 8 --max_examples 48 --spread_examples
 
 Teacher-forced protocol (the default). Each validation window (16 frames at stride 15, non-overlapping) is
 predicted frame by frame from ground-truth prefixes with MaskGIT; the model's temporal KV cache computes the
@@ -137,7 +138,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                              f"only that exists).")
     parser.add_argument("--checkpoint_dir", default="data/genie_model/final_checkpt",
                         help="GENIE checkpoint directory (config.json + model.safetensors) or a Hugging Face hub id "
-                             "such as 1x-technologies/GENIE_35M.")
+                             "such as 1x-technologies/GENIE_35M (not read by --protocol copy_ceiling).")
     parser.add_argument("--batch_size", type=int, default=16, help="Windows per forward pass.")
     parser.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT sampling steps per frame.")
     parser.add_argument("--temperature", type=float, default=0.0,
