@@ -361,6 +361,16 @@ def token_statistics(pred_NhHW: torch.Tensor, last_NHW: torch.Tensor, future_NhH
     return stats
 
 
+def add_rollout_scores(sums: dict, scorer: FrameScorer, tokens_BTHW: torch.Tensor, x_BTHW: torch.Tensor, P: int,
+                       with_lpips: bool) -> None:
+    """Add the per-horizon scores and token statistics of generated windows (B, T, H, W) against the true ones
+    (frames P.. generated, frame P - 1 held) to sums {key: (h,) summed over windows}, in place."""
+    scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips)
+    scores.update(token_statistics(tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:]))
+    for key, values_Bh in scores.items():
+        sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
+
+
 def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_time: Optional[float]) -> dict:
     """The rollout JSON line (module doc) from per-horizon score sums {"rollout_psnr": (h,), ...} over windows."""
     result = {"protocol": "rollout", "num_prompt_frames": num_prompt_frames}
@@ -403,10 +413,7 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
         _synchronize(device)
         gen_time.update(time.perf_counter() - start, B * (T - P))
 
-        scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips)
-        scores.update(token_statistics(tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:]))
-        for key, values_Bh in scores.items():
-            sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
+        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips)
         num_examples += B
         progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
@@ -425,10 +432,7 @@ def copy_ceiling_evaluate(loader, args: argparse.Namespace, device: torch.device
     for batch in tqdm(loader, desc="copy ceiling", unit="batch", file=sys.stderr):
         x_BTHW = batch["tokens"].to(device).long()
         tokens_BTHW, exact_B = ceiling_rollout(x_BTHW, P, args.ceiling_radius, args.ceiling_block, num_bits)
-        scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips)
-        scores.update(token_statistics(tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:]))
-        for key, values_Bh in scores.items():
-            sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
+        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips)
         num_examples += x_BTHW.shape[0]
         exact += int(exact_B.sum())
         num_tokens += tokens_BTHW[:, P:].numel()
