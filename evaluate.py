@@ -131,8 +131,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "(default 1: every position its own; the frame's side: one shift of the whole frame). "
                              "Must divide the frame's height and width in tokens.")
     parser.add_argument("--num_prompt_frames", type=int, default=None,
-                        help=f"Rollout and copy_ceiling only: ground-truth prompt frames P per window, 1 <= P < --window_size "
-                             f"(default {DEFAULT_ROLLOUT_PROMPT_FRAMES}); the other window_size - P are generated.")
+                        help=f"Rollout and copy_ceiling only: ground-truth prompt frames P per window, 1 <= P < "
+                             f"--window_size (default {DEFAULT_ROLLOUT_PROMPT_FRAMES}); the other window_size - P are "
+                             f"generated.")
     parser.add_argument("--val_data_dir", default=None,
                         help=f"Token dataset to evaluate on (default: {DEFAULT_VAL_DIR}, or {SAMPLE_VAL_DIR} when "
                              f"only that exists).")
@@ -553,9 +554,9 @@ def frame_scorer(args: argparse.Namespace, dataset: RawTokenDataset, device: tor
         return FrameScorer(tokenizer_ckpt, device, with_lpips=not args.skip_lpips)
     except (FileNotFoundError, ValueError) as e:  # missing tokenizer / LPIPS weights, unreadable checkpoint
         if args.protocol != "teacher_forced":
-            raise EvaluationError(f"cannot set up decoding{'' if args.skip_lpips else ' + LPIPS'}: {e}\nThe rollout "
-                                  f"protocol decodes frames for PSNR and SSIM: pass --tokenizer_ckpt (and "
-                                  f"--skip_lpips to go without LPIPS weights).") from None
+            raise EvaluationError(f"cannot set up decoding{'' if args.skip_lpips else ' + LPIPS'}: {e}\nThe "
+                                  f"{args.protocol} protocol decodes frames for PSNR and SSIM: pass --tokenizer_ckpt "
+                                  f"(and --skip_lpips to go without LPIPS weights).") from None
         raise EvaluationError(f"cannot set up decoding + LPIPS: {e}\nPass --skip_lpips to evaluate without "
                               f"decoding frames.") from None
 

@@ -174,11 +174,13 @@ def teacher_forced(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2, temperat
     context_cond_BTC, target_cond_BTC = target_action_embeds(model, x_BTHW, actions, latent_actions)
     kv_cache = context_cache(model, x_BTHW, context_cond_BTC)
 
+    greedy = temperature <= GREEDY_TEMPERATURE
+
     def logits_fn(frames_NHW):
         frames_BnHW = rearrange(frames_NHW, "(B n) H W -> B n H W", B=B)
         return targets_to_frames(run_frames(model, frames_BnHW, 1, kv_cache, TemporalMode.TARGETS,
                                             cond_BTC=_frames(target_cond_BTC, 1, T), with_mode=True,
-                                            greedy=temperature <= GREEDY_TEMPERATURE))
+                                            greedy=greedy))
 
     return sample_targets(model, logits_fn, B, T, x_BTHW, maskgit_steps, temperature, unmask_mode, generator)
 
