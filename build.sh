@@ -21,7 +21,7 @@ for arg in "$@"; do
     --1x) WANT_1X=1; WANT_SAMPLE=0 ;;
     --sample) WANT_SAMPLE=1 ;;
     --unseen) WANT_UNSEEN=1 ;;
-    -h|--help) sed -n '2,12p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,/^[^#]/s/^# \{0,1\}//p' "$0"; exit 0 ;;
     *) echo "build.sh: unknown option $arg (see ./build.sh --help)" >&2; exit 2 ;;
   esac
 done

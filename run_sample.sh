@@ -12,16 +12,17 @@
 # Futures are decoded with the pointer's --copy_bias 2 (COPY_BIAS), greedy copies from the single most weighted
 # neighbour (--greedy_tokens best_neighbour, GREEDY_TOKENS).
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
-# variables SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE, GENERATE_ARGS (extra generate.py flags;
-# set it empty for a GENIE_CONFIG without actions, e.g. GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=),
-# EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS (extra evaluate.py flags of the three evaluations),
-# SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout evaluation), COPY_BIAS and GREEDY_TOKENS change the
-# defaults below.
+# variables PY (the Python; default venv/bin/python), SAMPLE_DIR, OUT, GENIE_CONFIG, NUM_EXAMPLES, EXAMPLE_STRIDE,
+# GENERATE_ARGS (extra generate.py flags; set it empty for a GENIE_CONFIG without actions, e.g.
+# GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=), EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS
+# (extra evaluate.py flags of the three evaluations), SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout
+# evaluation), COPY_BIAS and GREEDY_TOKENS change the defaults below. run_gpu.sh is this job at a GPU's scale.
 # When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated
 # there (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json, metrics_rollout_sampled_unseen.json.
 set -euo pipefail
+case "${1:-}" in -h|--help) sed -n '2,/^[^#]/s/^# \{0,1\}//p' "$0"; exit 0 ;; esac
 cd "$(dirname "$0")"
-PY=venv/bin/python
+PY=${PY:-venv/bin/python}
 SAMPLE_DIR=${SAMPLE_DIR:-data/sample}
 OUT=${OUT:-data/genie_model}
 GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/sample_world_actions.json}

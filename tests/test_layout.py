@@ -50,3 +50,14 @@ def test_every_script_answers_help():
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.count("usage:") == len(SCRIPTS)
     assert "debug" not in proc.stdout.lower()
+
+
+@pytest.mark.parametrize("script", ["run_sample.sh", "run_gpu.sh", "build.sh"])
+def test_every_shell_job_answers_help_without_running(script, tmp_path):
+    """--help prints the script's header (what it does, its variables) and runs nothing, even from elsewhere."""
+    proc = subprocess.run(["bash", str(REPO / script), "--help"], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=60, env={**os.environ, "PY": "/nonexistent/python"})
+    assert proc.returncode == 0, proc.stderr
+    header = [line for line in (REPO / script).read_text().splitlines()[1:6] if line.startswith("#")]
+    assert header and header[0].lstrip("# ") in proc.stdout
+    assert "#!" not in proc.stdout and "set -euo" not in proc.stdout and not list(tmp_path.iterdir())

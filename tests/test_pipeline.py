@@ -70,3 +70,35 @@ def test_main_job_pipeline_tiny(tmp_path):
     unseen = json.loads((out / "metrics_unseen.json").read_text())
     assert unseen["num_examples"] == 1 and unseen["copy_acc"] == metrics["copy_acc"]  # same val split here
     assert json.loads((out / "metrics_rollout_unseen.json").read_text())["protocol"] == "rollout"
+
+
+def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
+    env = dict(os.environ, GPU_DIR=str(tmp_path / "world"), OUT=str(tmp_path / "model"))
+    env.pop("ALLOW_CPU", None)
+    refused = subprocess.run(["bash", str(REPO / "run_gpu.sh")], cwd=REPO, env=env, capture_output=True, text=True,
+                             timeout=120)
+    assert refused.returncode == 1 and "no CUDA GPU" in refused.stderr
+    assert not (tmp_path / "world").exists()  # stopped before building anything
+
+    tokenizer = tmp_path / "tokenizer"
+    VQModel(VQConfig(base_channels=32, ch_mult=[1, 2, 2], num_res_blocks=1, resolution=64)).save_pretrained(tokenizer)
+    config = tmp_path / "genie.json"
+    config.write_text(json.dumps({"num_layers": 1, "num_heads": 2, "d_model": 32, "T": 16, "S": 256,
+                                  "image_vocab_size": 262144, "num_prompt_frames": 8, "copy_radius": 1}))
+    env.update(ALLOW_CPU="1", EPISODES="1", GENIE_CONFIG=str(config), GENERATE_ARGS="", NUM_EXAMPLES="1",
+               BUILD_ARGS=f"--train_maps MAP01 --val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
+               LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SAMPLED_ROLLOUT_ARGS="",
+               ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
+               UNSEEN_DIR=str(tmp_path / "none"))
+    subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
+                    "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True,
+                   timeout=600)
+    built = json.loads((tmp_path / "world" / "raw" / "sample_world.json").read_text())
+    assert built["train"] == {"maps": ["MAP01"], "episodes_per_map": 1}
+    saved = json.loads((tmp_path / "model" / "final_checkpt" / "config.json").read_text())
+    assert (saved["d_model"], saved["copy_radius"]) == (32, 1)
+    metrics = json.loads((tmp_path / "model" / "metrics.json").read_text())
+    windows = len(RawTokenDataset(tmp_path / "world" / "val", window_size=16, stride=15, filter_overlaps=True))
+    assert metrics["num_examples"] == windows  # the recipe evaluates every validation window
+    assert json.loads((tmp_path / "model" / "metrics_rollout.json").read_text())["protocol"] == "rollout"
+    assert not (tmp_path / "model" / "metrics_rollout_sampled.json").exists()

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# The recipe for one CUDA GPU: a larger sample world and a larger model, evaluated exactly as run_sample.sh does.
+#   1. build GPU_DIR (default data/sample_gpu): EPISODES (default 16) walks per training map instead of 2, on the same
+#      maps with the same seed, so its validation split is byte for byte the default world's and every number
+#      compares with the CPU default's (rendering ~1 min, tokenizing on the GPU);
+#   2. ./run_sample.sh on it with genie/configs/gpu_world_actions.json (8 layers, d_model 256: 10 M parameters, the
+#      main command's model otherwise), STEPS (default 6000) steps of 32 windows, bf16 autocast and torch.compile
+#      (train.py's defaults on CUDA), then every evaluation of the main command, teacher-forced on all validation
+#      windows, and on data/unseen too when ./build.sh --unseen made it.
+# The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh
+# Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
+# (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to magvit2.build_sample (e.g. more --train_maps).
+# PY picks the Python (default venv/bin/python, from ./build.sh --no-data). Without a CUDA GPU it stops, unless
+# ALLOW_CPU=1 (hours to days of CPU time at these sizes; the tests run it at a tiny size).
+set -euo pipefail
+case "${1:-}" in -h|--help) sed -n '2,/^[^#]/s/^# \{0,1\}//p' "$0"; exit 0 ;; esac
+cd "$(dirname "$0")"
+export PY=${PY:-venv/bin/python}
+GPU_DIR=${GPU_DIR:-data/sample_gpu}
+if [ "${ALLOW_CPU:-0}" != 1 ] && ! "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)"; then
+  echo "run_gpu.sh: no CUDA GPU visible to $PY; this recipe is sized for one (./run_sample.sh is the CPU job)." >&2
+  echo "  ALLOW_CPU=1 runs it anyway." >&2
+  exit 1
+fi
+
+# shellcheck disable=SC2086  # BUILD_ARGS is a list of flags
+"$PY" -m magvit2.build_sample --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-16}" ${BUILD_ARGS:-}
+
+export SAMPLE_DIR=$GPU_DIR OUT=${OUT:-data/genie_gpu} GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/gpu_world_actions.json}
+export EVAL_ARGS=${EVAL_ARGS-}
+exec ./run_sample.sh --per_device_train_batch_size 32 --max_train_steps "${STEPS:-6000}" --num_warmup_steps 300 \
+  --eval_every_n_steps 1000 --max_eval_steps 32 --checkpointing_steps 1000 "$@"
