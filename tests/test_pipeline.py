@@ -16,9 +16,14 @@ REPO = Path(__file__).resolve().parents[1]
 pytest.importorskip("vizdoom")
 
 
+def tiny_tokenizer(path: Path) -> Path:
+    """A small random 64x64 tokenizer saved at path: fast to run, real enough for the pipeline's plumbing."""
+    VQModel(VQConfig(base_channels=32, ch_mult=[1, 2, 2], num_res_blocks=1, resolution=64)).save_pretrained(path)
+    return path
+
+
 def test_main_job_pipeline_tiny(tmp_path):
-    tokenizer = tmp_path / "tokenizer"
-    VQModel(VQConfig(base_channels=32, ch_mult=[1, 2, 2], num_res_blocks=1, resolution=64)).save_pretrained(tokenizer)
+    tokenizer = tiny_tokenizer(tmp_path / "tokenizer")
     sample = tmp_path / "sample"
     build = [sys.executable, "-m", "magvit2.build_sample", "--output_dir", str(sample), "--train_maps", "MAP01",
              "--val_maps", "MAP18", "--train_episodes", "1", "--episode_len", "240", "--tokenizer_ckpt", str(tokenizer)]
@@ -73,6 +78,7 @@ def test_main_job_pipeline_tiny(tmp_path):
 
 
 def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
+    """run_gpu.sh stops without CUDA before building anything; with ALLOW_CPU it builds, trains and evaluates."""
     env = dict(os.environ, GPU_DIR=str(tmp_path / "world"), OUT=str(tmp_path / "model"))
     env.pop("ALLOW_CPU", None)
     refused = subprocess.run(["bash", str(REPO / "run_gpu.sh")], cwd=REPO, env=env, capture_output=True, text=True,
@@ -80,8 +86,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     assert refused.returncode == 1 and "no CUDA GPU" in refused.stderr
     assert not (tmp_path / "world").exists()  # stopped before building anything
 
-    tokenizer = tmp_path / "tokenizer"
-    VQModel(VQConfig(base_channels=32, ch_mult=[1, 2, 2], num_res_blocks=1, resolution=64)).save_pretrained(tokenizer)
+    tokenizer = tiny_tokenizer(tmp_path / "tokenizer")
     config = tmp_path / "genie.json"
     config.write_text(json.dumps({"num_layers": 1, "num_heads": 2, "d_model": 32, "T": 16, "S": 256,
                                   "image_vocab_size": 262144, "num_prompt_frames": 8, "copy_radius": 1}))
