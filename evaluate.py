@@ -48,7 +48,8 @@ prompt frame (P - 1) for every horizon. The JSON line holds only these keys (no 
   true_repeated: the share equal to their left neighbour in the same frame. A rollout that freezes shows
   unchanged rising towards 1, one that flattens into uniform patches shows repeated far above the true frames';
   each with its _mean over horizons;
-- maskgit_steps, temperature, copy_bias, greedy_tokens, sampled_tokens: the sampler that generated them;
+- maskgit_steps, temperature, copy_bias, greedy_tokens, sampled_tokens, stall_threshold: the sampler that generated
+  them (a window held by the stall rule shows unchanged = 1 after the frame it stalled at);
 - gen_time: seconds per generated frame (tokens only, as above); num_examples: windows evaluated.
 
 Copy-ceiling protocol (--protocol copy_ceiling; no checkpoint is read): the rollout protocol's windows, prompt and
@@ -74,7 +75,8 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import add_device_arg, add_token_choice_args, resolve_device, setup_logging
+from common.cli import (add_device_arg, add_stall_threshold_arg, add_token_choice_args, resolve_device,
+                        setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
 from common.images import psnr, ssim
@@ -149,6 +151,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "when sampling (e^bias times the copy weight). > 0 gives sharper futures closer to "
                              "the previous frame (better LPIPS, lower PSNR); 0 is the model as trained.")
     add_token_choice_args(parser)
+    add_stall_threshold_arg(parser)
     parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
                         help="Which tokens each MaskGIT step reveals: random (published default) or the most "
                              "confident (greedy).")
@@ -410,7 +413,7 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
         with autocast:
             tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, args.maskgit_steps, args.temperature,
                                       args.unmask_mode, generator=generator, actions=actions_BTD,
-                                      latent_actions=latent_BT, control=True)
+                                      latent_actions=latent_BT, control=True, stall_threshold=args.stall_threshold)
         _synchronize(device)
         gen_time.update(time.perf_counter() - start, B * (T - P))
 
@@ -420,7 +423,7 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
     return {**rollout_result(sums, num_examples, P, gen_time.mean), "maskgit_steps": args.maskgit_steps,
             "temperature": args.temperature, "copy_bias": args.copy_bias, "greedy_tokens": args.greedy_tokens,
-            "sampled_tokens": args.sampled_tokens}
+            "sampled_tokens": args.sampled_tokens, "stall_threshold": args.stall_threshold}
 
 
 @torch.no_grad()
@@ -469,7 +472,7 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
         raise DataMismatchError(f"delta_psnr: the checkpoint's num_prompt_frames {P} leaves no frame to generate in "
                               f"windows of {args.window_size} frames")
     kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
-                  control=True)
+                  control=True, stall_threshold=args.stall_threshold)
     # same sampling noise in both runs: only the latent actions differ
     generators = [torch.Generator(device=device).manual_seed(args.seed) for _ in range(2)]
     random_actions = torch.Generator().manual_seed(args.seed + 1)

@@ -73,6 +73,27 @@ def add_token_choice_args(parser) -> None:
                                  f"Models without a copy head decode the same either way.")
 
 
+def _share(text: str) -> float:
+    """argparse type of a share in (0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}") from None
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text}")
+    return value
+
+
+def add_stall_threshold_arg(parser) -> None:
+    """--stall_threshold of the scripts that generate futures (genie.inference.generate's stall rule)."""
+    parser.add_argument("--stall_threshold", type=_share, default=None,
+                        help="Decoding rule for free-running futures, off by default: once a generated frame keeps "
+                             "at least this share of the frame before's tokens at the same positions (e.g. 0.4), "
+                             "the window's future is taken to have stopped moving and every later frame repeats "
+                             "that one. A small model's greedy futures slow down and then decay in place; this "
+                             "holds them where they stopped. Teacher-forced predictions are unaffected.")
+
+
 def add_num_threads_arg(parser) -> None:
     parser.add_argument("--num_threads", type=int, default=0,
                         help="CPU threads for torch (0: torch's default); 1 gives steadier, often faster runs of "

@@ -9,7 +9,8 @@ from evaluate import main
 from genie.copy_ceiling import best_copies, ceiling_rollout, code_distances, neighbours
 from tests.test_evaluate import ROLLOUT_KEYS, eval_args, last_json_line, tiny  # noqa: F401 (tiny: a fixture)
 
-SAMPLER_KEYS = {"maskgit_steps", "temperature", "copy_bias", "greedy_tokens", "sampled_tokens"}
+SAMPLER_KEYS = {"maskgit_steps", "temperature", "copy_bias", "greedy_tokens", "sampled_tokens",
+                "stall_threshold"}
 
 
 def shifted(frame_BHW: torch.Tensor, dy: int, dx: int) -> torch.Tensor:

@@ -424,3 +424,40 @@ def test_a_sampler_gets_the_mixture_and_its_parts_without_the_mode(joint_samplin
             torch.testing.assert_close(getattr(lean, name), getattr(full, name), atol=0, rtol=0)
         else:
             assert getattr(lean, name) is None
+
+
+def held_after_stalls(frames_BTHW: torch.Tensor, P: int, threshold: float) -> torch.Tensor:
+    """The stall rule written out window by window: every frame after the first generated frame that keeps
+    >= threshold of the frame before's tokens repeats that frame."""
+    held = frames_BTHW.clone()
+    for b in range(len(held)):
+        for t in range(P, held.shape[1]):
+            if (frames_BTHW[b, t] == frames_BTHW[b, t - 1]).float().mean() >= threshold:
+                held[b, t + 1:] = frames_BTHW[b, t]
+                break
+    return held
+
+
+def test_stalled_rollouts_hold_the_last_frame_that_moved():
+    model = tiny_copy_model(radius=1, seed=4, match=True)
+    with torch.no_grad():
+        model.copy_head.score_proj.weight.mul_(0.05)
+    model.set_copy_bias(3.0)
+    model.set_greedy_tokens("best_neighbour")
+    torch.manual_seed(1)
+    x = torch.tensor([5, 300, 1000, 2500])[torch.randint(0, 4, (8, 6, 4, 4))]
+
+    def rollout(threshold=None):
+        return generate(model, x[:, :2], 4, generator=torch.Generator().manual_seed(0), stall_threshold=threshold)[0]
+
+    free = rollout()
+    shares_Bn = (free[:, 2:] == free[:, 1:-1]).float().mean(dim=(2, 3))
+    # a threshold at which some window stalls before its last new frame and another never stalls
+    threshold = next(float(v) for v in shares_Bn.unique().flip(0)
+                     if (shares_Bn[:, :-1] >= v).any(1).any() and (shares_Bn < v).all(1).any())
+    held = rollout(threshold)
+    torch.testing.assert_close(held, held_after_stalls(free, 2, threshold), atol=0, rtol=0)
+    assert not torch.equal(held, free)
+    assert torch.equal(rollout(1.0), held_after_stalls(free, 2, 1.0))  # only exact repeats stall
+    with pytest.raises(ValueError, match="stall_threshold"):
+        rollout(0.0)

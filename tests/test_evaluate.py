@@ -28,7 +28,7 @@ ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold"
                        for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
 ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
                                      "gen_time", "num_examples", "maskgit_steps", "temperature", "copy_bias",
-                                     "greedy_tokens", "sampled_tokens"} | {
+                                     "greedy_tokens", "sampled_tokens", "stall_threshold"} | {
     f"{name}_{stat}{suffix}" for name in ("rollout", "true") for stat in ("unchanged", "repeated")
     for suffix in ("", "_mean")}
 
@@ -403,3 +403,16 @@ def test_token_choice_flags_set_the_models_decoding(tiny, capsys, monkeypatch, n
     flag = () if choice is None else (f"--{name}", choice)
     assert main(eval_args(tiny.data, tiny.ckpt, "--skip_lpips", "--max_examples", "1", *flag)) == 0
     assert settings == [expected]
+
+
+def test_stall_threshold_reaches_the_rollouts_and_the_json_line(tiny, capsys, monkeypatch):
+    import evaluate as script  # the module; `evaluate` here is its teacher-forced function
+    seen = []
+    real = script.generate
+    monkeypatch.setattr(script, "generate", lambda *a, **kw: seen.append(kw["stall_threshold"]) or real(*a, **kw))
+    assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3", "--max_examples",
+                          "2", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips", "--stall_threshold", "1")) == 0
+    assert seen == [1.0] and last_json_line(capsys.readouterr().out)["stall_threshold"] == 1.0
+    with pytest.raises(SystemExit):
+        main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--stall_threshold", "-0.1"))
+    assert "expected a number in (0, 1], got -0.1" in capsys.readouterr().err
