@@ -48,7 +48,7 @@ prompt frame (P - 1) for every horizon. The JSON line holds only these keys (no 
   true_repeated: the share equal to their left neighbour in the same frame. A rollout that freezes shows
   unchanged rising towards 1, one that flattens into uniform patches shows repeated far above the true frames';
   each with its _mean over horizons;
-- maskgit_steps, temperature, copy_bias, greedy_tokens, sampled_tokens, stall_threshold: the sampler that generated
+- maskgit_steps, temperature, copy_bias, greedy_tokens, sampled_tokens, stall_ratio: the sampler that generated
   them (a window held by the stall rule shows unchanged = 1 after the frame it stalled at);
 - gen_time: seconds per generated frame (tokens only, as above); num_examples: windows evaluated.
 
@@ -75,7 +75,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import (add_device_arg, add_stall_threshold_arg, add_token_choice_args, resolve_device,
+from common.cli import (add_device_arg, add_stall_ratio_arg, add_token_choice_args, resolve_device,
                         setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
@@ -151,7 +151,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "when sampling (e^bias times the copy weight). > 0 gives sharper futures closer to "
                              "the previous frame (better LPIPS, lower PSNR); 0 is the model as trained.")
     add_token_choice_args(parser)
-    add_stall_threshold_arg(parser)
+    add_stall_ratio_arg(parser)
     parser.add_argument("--unmask_mode", choices=UNMASK_MODES, default="random",
                         help="Which tokens each MaskGIT step reveals: random (published default) or the most "
                              "confident (greedy).")
@@ -210,6 +210,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         if args.save_outputs_dir is not None:
             parser.error(f"--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
                          f"{args.protocol}")
+        if args.stall_ratio is not None and args.num_prompt_frames < 2:
+            parser.error(f"--stall_ratio compares generated frames with the prompt's motion: it needs "
+                         f"--num_prompt_frames >= 2, got {args.num_prompt_frames}")
     elif args.num_prompt_frames is not None:
         parser.error("--num_prompt_frames applies to --protocol rollout and copy_ceiling only")
     if args.val_data_dir is None:
@@ -413,7 +416,7 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
         with autocast:
             tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, args.maskgit_steps, args.temperature,
                                       args.unmask_mode, generator=generator, actions=actions_BTD,
-                                      latent_actions=latent_BT, control=True, stall_threshold=args.stall_threshold)
+                                      latent_actions=latent_BT, control=True, stall_ratio=args.stall_ratio)
         _synchronize(device)
         gen_time.update(time.perf_counter() - start, B * (T - P))
 
@@ -423,7 +426,7 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
     return {**rollout_result(sums, num_examples, P, gen_time.mean), "maskgit_steps": args.maskgit_steps,
             "temperature": args.temperature, "copy_bias": args.copy_bias, "greedy_tokens": args.greedy_tokens,
-            "sampled_tokens": args.sampled_tokens, "stall_threshold": args.stall_threshold}
+            "sampled_tokens": args.sampled_tokens, "stall_ratio": args.stall_ratio}
 
 
 @torch.no_grad()
@@ -471,8 +474,11 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
     if P >= args.window_size:
         raise DataMismatchError(f"delta_psnr: the checkpoint's num_prompt_frames {P} leaves no frame to generate in "
                               f"windows of {args.window_size} frames")
+    if args.stall_ratio is not None and P < 2:
+        raise DataMismatchError(f"delta_psnr with --stall_ratio: the checkpoint's num_prompt_frames {P} gives no "
+                                f"prompt motion to compare with (needs >= 2)")
     kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
-                  control=True, stall_threshold=args.stall_threshold)
+                  control=True, stall_ratio=args.stall_ratio)
     # same sampling noise in both runs: only the latent actions differ
     generators = [torch.Generator(device=device).manual_seed(args.seed) for _ in range(2)]
     random_actions = torch.Generator().manual_seed(args.seed + 1)

@@ -7,7 +7,7 @@
 #      main command's model otherwise), STEPS (default 6000) steps of 32 windows, bf16 autocast and torch.compile
 #      (train.py's defaults on CUDA), then every evaluation of the main command, teacher-forced on all validation
 #      windows, and on data/unseen too when ./build.sh --unseen made it.
-# The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_THRESHOLD
+# The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO
 # as in run_sample.sh)
 # Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
 # (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to magvit2.build_sample (e.g. more --train_maps).

@@ -16,10 +16,11 @@
 # GENERATE_ARGS (extra generate.py flags; set it empty for a GENIE_CONFIG without actions, e.g.
 # GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=), EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS
 # (extra evaluate.py flags of the three evaluations), SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout
-# evaluation), COPY_BIAS and GREEDY_TOKENS change the defaults below. STALL_THRESHOLD (off unless set) turns on
-# the stall rule for the futures (--stall_threshold: a future that nearly stops moving holds the frame where it
-# stopped; the README measures 0.4 for the model without actions: GENIE_CONFIG=genie/configs/sample_world.json
-# GENERATE_ARGS= STALL_THRESHOLD=0.4 ./run_sample.sh). run_gpu.sh is this job at a GPU's scale.
+# evaluation), COPY_BIAS and GREEDY_TOKENS change the defaults below. STALL_RATIO (off unless set) turns on
+# the stall rule for the futures (--stall_ratio: a future whose frame changes at most that fraction of what the
+# prompt's frames change holds that frame; the README measures 0.66 for the model without actions:
+# GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS= STALL_RATIO=0.66 ./run_sample.sh). run_gpu.sh is
+# this job at a GPU's scale.
 # When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated
 # there (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json, metrics_rollout_sampled_unseen.json.
 set -euo pipefail
@@ -36,7 +37,7 @@ VAL=$SAMPLE_DIR/val
 # weight, which grows flat patches): sharper futures at the same PSNR (README). COPY_BIAS=0 for a model without the
 # pointer (copy_radius); GREEDY_TOKENS=joint decodes greedy futures as the model's most probable tokens.
 DECODE_ARGS="--copy_bias ${COPY_BIAS:-2} --greedy_tokens ${GREEDY_TOKENS:-best_neighbour}"
-DECODE_ARGS+="${STALL_THRESHOLD:+ --stall_threshold $STALL_THRESHOLD}"
+DECODE_ARGS+="${STALL_RATIO:+ --stall_ratio $STALL_RATIO}"
 [ -f "$TRAIN/metadata.json" ] || { echo "run_sample.sh: $TRAIN is missing; run ./build.sh first" >&2; exit 1; }
 
 "$PY" train.py --genie_config "$GENIE_CONFIG" --train_data_dir "$TRAIN" --val_data_dir "$VAL" \

@@ -84,14 +84,15 @@ def _share(text: str) -> float:
     return value
 
 
-def add_stall_threshold_arg(parser) -> None:
-    """--stall_threshold of the scripts that generate futures (genie.inference.generate's stall rule)."""
-    parser.add_argument("--stall_threshold", type=_share, default=None,
-                        help="Decoding rule for free-running futures, off by default: once a generated frame keeps "
-                             "at least this share of the frame before's tokens at the same positions (e.g. 0.4), "
-                             "the window's future is taken to have stopped moving and every later frame repeats "
-                             "that one. A small model's greedy futures slow down and then decay in place; this "
-                             "holds them where they stopped. Teacher-forced predictions are unaffected.")
+def add_stall_ratio_arg(parser) -> None:
+    """--stall_ratio of the scripts that generate futures (genie.inference.generate's stall rule)."""
+    parser.add_argument("--stall_ratio", type=_share, default=None,
+                        help="Decoding rule for free-running futures, off by default: once a generated frame changes "
+                             "at most this fraction of what the prompt's frames change per step (the share of "
+                             "tokens that differ from the frame before; e.g. 0.66), the window's future is taken to "
+                             "have stopped moving and every later frame repeats that one. A small model's greedy "
+                             "futures slow down and then decay in place; this holds them where they stopped. Needs "
+                             "at least 2 prompt frames. Teacher-forced predictions are unaffected.")
 
 
 def add_num_threads_arg(parser) -> None:

@@ -28,7 +28,7 @@ import torch
 from einops import rearrange
 from tqdm.auto import tqdm
 
-from common.cli import add_device_arg, add_stall_threshold_arg, add_token_choice_args, resolve_device, setup_logging
+from common.cli import add_device_arg, add_stall_ratio_arg, add_token_choice_args, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
@@ -76,7 +76,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "(e^bias times the copy weight). > 0 gives sharper futures closer to the previous frame; "
                         "0 is the model as trained.")
     add_token_choice_args(p)
-    add_stall_threshold_arg(p)
+    add_stall_ratio_arg(p)
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
                    help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
     add_device_arg(p)
@@ -100,8 +100,11 @@ def parse_args(argv=None) -> argparse.Namespace:
         if len(args.latent_actions) != num_new:
             p.error(f"--latent_actions: {len(args.latent_actions)} ids for {num_new} generated frames "
                     f"(window_size {args.window_size} - num_prompt_frames {args.num_prompt_frames})")
-    if args.teacher_force_time and args.stall_threshold is not None:
-        p.error("--stall_threshold holds stalled free-running futures; --teacher_force_time predicts each frame from "
+    if args.stall_ratio is not None and args.num_prompt_frames < 2:
+        p.error(f"--stall_ratio compares generated frames with the prompt's motion: it needs --num_prompt_frames >= 2, "
+                f"got {args.num_prompt_frames}")
+    if args.teacher_force_time and args.stall_ratio is not None:
+        p.error("--stall_ratio holds stalled free-running futures; --teacher_force_time predicts each frame from "
                 "the ground truth, which never stalls")
     if args.teacher_force_time and (args.latent_actions is not None or args.actions_from_data):
         p.error("--latent_actions and --actions_from_data play generated frames; --teacher_force_time predicts each "
@@ -179,7 +182,7 @@ def predict(model: STMaskGIT, gt_BTHW: torch.Tensor, args, generator: torch.Gene
             actions_BTD[:, P:] = float("nan")
         kwargs.update(actions=actions_BTD, latent_actions=latent_BT)
     tokens_BTHW, _ = generate_frames(model, gt_BTHW[:, :P], T - P, control=control,
-                                     stall_threshold=args.stall_threshold, **kwargs)
+                                     stall_ratio=args.stall_ratio, **kwargs)
     return tokens_BTHW[:, P:]
 
 
@@ -240,7 +243,7 @@ def generate(args) -> dict:
                     example_stride=args.example_stride,
                     frames_per_example=frames_per_example, teacher_force_time=args.teacher_force_time,
                     maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
-                    stall_threshold=args.stall_threshold,
+                    stall_ratio=args.stall_ratio,
                     stride=args.stride, checkpoint_dir=str(args.checkpoint_dir), val_data_dir=str(args.val_data_dir))
     actions = None
     if model.copy_head is not None:

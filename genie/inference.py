@@ -105,17 +105,19 @@ def generation_inputs(model, prompt_BTHW: torch.Tensor, num_new_frames: int, act
 def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_steps: int = 2,
              temperature: float = 0.0, unmask_mode: str = "random", generator: Optional[torch.Generator] = None,
              actions: Optional[torch.Tensor] = None, latent_actions: Optional[torch.Tensor] = None,
-             control: bool = False, stall_threshold: Optional[float] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+             control: bool = False, stall_ratio: Optional[float] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Autoregressively generate frames after a prompt.
 
     prompt_BTHW: (B, T0, H, W) token ids; T0 + num_new_frames must be <= config.T.
     actions (B, T0 + n, D), latent_actions (B, T0 + n): per-frame action rows of the whole window (models with
     action inputs). control=False: only the prompt's rows are used (the challenge's rule; later frames get "no
     action" whatever the rows hold); control=True: all rows are played (driving the world).
-    stall_threshold (opt-in decoding rule, None: off): once a generated frame keeps at least this share of the
-    tokens of the frame before it (at the same positions), that window's future is taken to have stopped moving,
-    and every later frame repeats that one. A small model's greedy futures slow down and then decay in place (their
-    few changing tokens make them worse than the frame they stopped at); this holds them where they stopped.
+    stall_ratio (opt-in decoding rule, None: off; needs T0 >= 2): once a generated frame changes at most this
+    fraction of what the prompt's frames change per step (the share of tokens that differ from the frame before at
+    the same position), that window's future is taken to have stopped moving, and every later frame repeats that
+    one. A small model's greedy futures slow down and then decay in place (their few changing tokens make them worse
+    than the frame they stopped at); this holds them where they stopped. Measured against the prompt's own motion,
+    a scene that barely changes (a still camera) does not count as stalled.
     Each MaskGIT step costs one frame's compute, plus one pass per finished frame to append it to the cache.
     Returns (tokens (B, T0 + n, H, W): prompt then generated frames,
              first-step factored logits of the generated frames (B, V, F, n, H, W)).
@@ -126,8 +128,13 @@ def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_step
     run_frames(model, prompt_BTHW, 0, kv_cache, TemporalMode.PREFILL, commit=T0, cond_BTC=_frames(cond_BTC, 0, T0))
     all_logits = []
     greedy = temperature <= GREEDY_TEMPERATURE
-    if stall_threshold is not None and not 0.0 < stall_threshold <= 1.0:
-        raise ValueError(f"stall_threshold must be in (0, 1], got {stall_threshold}")
+    if stall_ratio is not None:
+        if not 0.0 < stall_ratio <= 1.0:
+            raise ValueError(f"stall_ratio must be in (0, 1], got {stall_ratio}")
+        if T0 < 2:
+            raise ValueError("stall_ratio compares generated frames with the prompt's motion: it needs at least 2 "
+                             f"prompt frames, got {T0}")
+        stall_limit_B = stall_ratio * changed_share(prompt_BTHW[:, 1:], prompt_BTHW[:, :-1]).mean(dim=1)
     stalled_B = torch.zeros(tokens_BTHW.shape[0], dtype=torch.bool, device=tokens_BTHW.device)
     for t in range(T0, total):
         def logits_fn(frame_BHW):
@@ -137,8 +144,8 @@ def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_step
 
         sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], model.mask_token_id, maskgit_steps,
                                                   temperature, unmask_mode, generator)
-        if stall_threshold is not None:
-            sample_BHW, stalled_B = hold_stalled(sample_BHW, tokens_BTHW[:, t - 1], stalled_B, stall_threshold)
+        if stall_ratio is not None:
+            sample_BHW, stalled_B = hold_stalled(sample_BHW, tokens_BTHW[:, t - 1], stalled_B, stall_limit_B)
         tokens_BTHW[:, t] = sample_BHW
         all_logits.append(logits_BVFHW)
         if t + 1 < total:
@@ -147,18 +154,18 @@ def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_step
     return tokens_BTHW, torch.stack(all_logits, dim=3)
 
 
-def stalled_frames(frame_BHW: torch.Tensor, before_BHW: torch.Tensor, threshold: float) -> torch.Tensor:
-    """(B,) bool: which frames keep at least `threshold` of the frame before's tokens at the same positions."""
-    return (frame_BHW == before_BHW).float().mean(dim=(1, 2)) >= threshold
+def changed_share(frames: torch.Tensor, before: torch.Tensor) -> torch.Tensor:
+    """(..., H, W) token frames and the frames before them -> (...,) the share of positions whose token changed."""
+    return (frames != before).float().mean(dim=(-2, -1))
 
 
 def hold_stalled(frame_BHW: torch.Tensor, before_BHW: torch.Tensor, stalled_B: torch.Tensor,
-                 threshold: float) -> Tuple[torch.Tensor, torch.Tensor]:
+                 limit_B: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """`generate`'s stall rule for one new frame (B, H, W) after `before_BHW`: windows that stalled at an earlier
-    frame repeat the frame before; the others keep their new frame, which may stall them from here on.
-    Returns (the frame to keep, stalled (B,) so far)."""
+    frame repeat the frame before; the others keep their new frame, which stalls them from here on when it changes
+    at most limit_B (B,) of the tokens. Returns (the frame to keep, stalled (B,) so far)."""
     kept_BHW = torch.where(stalled_B[:, None, None], before_BHW, frame_BHW)
-    return kept_BHW, stalled_B | stalled_frames(frame_BHW, before_BHW, threshold)
+    return kept_BHW, stalled_B | (changed_share(frame_BHW, before_BHW) <= limit_B)
 
 
 def check_teacher_forced(model, x_BTHW: torch.Tensor) -> None:

@@ -10,7 +10,7 @@ from genie.copy_ceiling import best_copies, ceiling_rollout, code_distances, nei
 from tests.test_evaluate import ROLLOUT_KEYS, eval_args, last_json_line, tiny  # noqa: F401 (tiny: a fixture)
 
 SAMPLER_KEYS = {"maskgit_steps", "temperature", "copy_bias", "greedy_tokens", "sampled_tokens",
-                "stall_threshold"}
+                "stall_ratio"}
 
 
 def shifted(frame_BHW: torch.Tensor, dy: int, dx: int) -> torch.Tensor:

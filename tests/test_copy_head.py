@@ -426,19 +426,20 @@ def test_a_sampler_gets_the_mixture_and_its_parts_without_the_mode(joint_samplin
             assert getattr(lean, name) is None
 
 
-def held_after_stalls(frames_BTHW: torch.Tensor, P: int, threshold: float) -> torch.Tensor:
-    """The stall rule written out window by window: every frame after the first generated frame that keeps
-    >= threshold of the frame before's tokens repeats that frame."""
+def held_after_stalls(frames_BTHW: torch.Tensor, P: int, ratio: float) -> torch.Tensor:
+    """The stall rule written out window by window: every frame after the first generated frame that changes at
+    most `ratio` times the prompt's mean share of changed tokens per step repeats that frame."""
     held = frames_BTHW.clone()
     for b in range(len(held)):
+        prompt_change = sum((frames_BTHW[b, t] != frames_BTHW[b, t - 1]).float().mean() for t in range(1, P)) / (P - 1)
         for t in range(P, held.shape[1]):
-            if (frames_BTHW[b, t] == frames_BTHW[b, t - 1]).float().mean() >= threshold:
+            if (frames_BTHW[b, t] != frames_BTHW[b, t - 1]).float().mean() <= ratio * prompt_change:
                 held[b, t + 1:] = frames_BTHW[b, t]
                 break
     return held
 
 
-def test_stalled_rollouts_hold_the_last_frame_that_moved():
+def test_stalled_rollouts_hold_the_frame_where_they_stopped():
     model = tiny_copy_model(radius=1, seed=4, match=True)
     with torch.no_grad():
         model.copy_head.score_proj.weight.mul_(0.05)
@@ -446,18 +447,24 @@ def test_stalled_rollouts_hold_the_last_frame_that_moved():
     model.set_greedy_tokens("best_neighbour")
     torch.manual_seed(1)
     x = torch.tensor([5, 300, 1000, 2500])[torch.randint(0, 4, (8, 6, 4, 4))]
+    x[:4, 1] = x[:4, 0].roll(1, dims=-1)  # prompts that move in different amounts
+    P = 2
 
-    def rollout(threshold=None):
-        return generate(model, x[:, :2], 4, generator=torch.Generator().manual_seed(0), stall_threshold=threshold)[0]
+    def rollout(ratio=None, prompt=P):
+        return generate(model, x[:, :prompt], 6 - prompt, generator=torch.Generator().manual_seed(0),
+                        stall_ratio=ratio)[0]
 
     free = rollout()
-    shares_Bn = (free[:, 2:] == free[:, 1:-1]).float().mean(dim=(2, 3))
-    # a threshold at which some window stalls before its last new frame and another never stalls
-    threshold = next(float(v) for v in shares_Bn.unique().flip(0)
-                     if (shares_Bn[:, :-1] >= v).any(1).any() and (shares_Bn < v).all(1).any())
-    held = rollout(threshold)
-    torch.testing.assert_close(held, held_after_stalls(free, 2, threshold), atol=0, rtol=0)
+    prompt_change_B = (x[:, 1] != x[:, 0]).float().mean(dim=(1, 2))
+    ratios_Bn = (free[:, P:] != free[:, P - 1:-1]).float().mean(dim=(2, 3)) / prompt_change_B[:, None]
+    # a ratio at which some window stalls before its last new frame and another never stalls
+    ratio = next(float(v) for v in ratios_Bn.unique() if 0 < v <= 1
+                 and (ratios_Bn[:, :-1] <= v).any(1).any() and (ratios_Bn > v).all(1).any())
+    held = rollout(ratio)
+    torch.testing.assert_close(held, held_after_stalls(free, P, ratio), atol=0, rtol=0)
     assert not torch.equal(held, free)
-    assert torch.equal(rollout(1.0), held_after_stalls(free, 2, 1.0))  # only exact repeats stall
-    with pytest.raises(ValueError, match="stall_threshold"):
+    torch.testing.assert_close(rollout(1.0), held_after_stalls(free, P, 1.0), atol=0, rtol=0)
+    with pytest.raises(ValueError, match="stall_ratio must be in"):
         rollout(0.0)
+    with pytest.raises(ValueError, match="at least 2 prompt frames"):
+        rollout(0.5, prompt=1)

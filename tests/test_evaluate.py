@@ -28,7 +28,7 @@ ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold"
                        for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
 ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
                                      "gen_time", "num_examples", "maskgit_steps", "temperature", "copy_bias",
-                                     "greedy_tokens", "sampled_tokens", "stall_threshold"} | {
+                                     "greedy_tokens", "sampled_tokens", "stall_ratio"} | {
     f"{name}_{stat}{suffix}" for name in ("rollout", "true") for stat in ("unchanged", "repeated")
     for suffix in ("", "_mean")}
 
@@ -405,14 +405,17 @@ def test_token_choice_flags_set_the_models_decoding(tiny, capsys, monkeypatch, n
     assert settings == [expected]
 
 
-def test_stall_threshold_reaches_the_rollouts_and_the_json_line(tiny, capsys, monkeypatch):
+def test_stall_ratio_reaches_the_rollouts_and_the_json_line(tiny, capsys, monkeypatch):
     import evaluate as script  # the module; `evaluate` here is its teacher-forced function
     seen = []
     real = script.generate
-    monkeypatch.setattr(script, "generate", lambda *a, **kw: seen.append(kw["stall_threshold"]) or real(*a, **kw))
+    monkeypatch.setattr(script, "generate", lambda *a, **kw: seen.append(kw["stall_ratio"]) or real(*a, **kw))
     assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3", "--max_examples",
-                          "2", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips", "--stall_threshold", "1")) == 0
-    assert seen == [1.0] and last_json_line(capsys.readouterr().out)["stall_threshold"] == 1.0
+                          "2", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips", "--stall_ratio", "1")) == 0
+    assert seen == [1.0] and last_json_line(capsys.readouterr().out)["stall_ratio"] == 1.0
     with pytest.raises(SystemExit):
-        main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--stall_threshold", "-0.1"))
+        main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--stall_ratio", "-0.1"))
     assert "expected a number in (0, 1], got -0.1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "1", "--stall_ratio", "1"))
+    assert "needs --num_prompt_frames >= 2, got 1" in capsys.readouterr().err

@@ -145,25 +145,26 @@ def test_token_choices_reach_a_copy_model_and_its_metadata(setup, tmp_path, monk
     assert read_metadata(tmp_path / "out")[name] == choice
 
 
-def test_stall_threshold_reaches_generation_and_metadata(setup, tmp_path, monkeypatch):
+def test_stall_ratio_reaches_generation_and_metadata(setup, tmp_path, monkeypatch):
     seen = []
     real = generate.generate_frames
     monkeypatch.setattr(generate, "generate_frames",
-                        lambda *a, **kw: seen.append(kw["stall_threshold"]) or real(*a, **kw))
-    run(setup, tmp_path, "--stall_threshold", "0.4", "--num_examples", "2")
+                        lambda *a, **kw: seen.append(kw["stall_ratio"]) or real(*a, **kw))
+    run(setup, tmp_path, "--stall_ratio", "0.4", "--num_examples", "2")
     assert seen == [0.4]
-    assert read_metadata(tmp_path)["stall_threshold"] == 0.4
+    assert read_metadata(tmp_path)["stall_ratio"] == 0.4
     run(setup, tmp_path / "off")
-    assert seen == [0.4, None] and read_metadata(tmp_path / "off")["stall_threshold"] is None
+    assert seen == [0.4, None] and read_metadata(tmp_path / "off")["stall_ratio"] is None
 
 
 @pytest.mark.parametrize("extra, pattern", [
-    (("--stall_threshold", "0"), r"expected a number in \(0, 1\], got 0"),
-    (("--stall_threshold", "1.5"), r"expected a number in \(0, 1\], got 1.5"),
-    (("--stall_threshold", "half"), r"expected a number in \(0, 1\], got 'half'"),
-    (("--stall_threshold", "0.4", "--teacher_force_time"), "ground truth, which never stalls"),
+    (("--stall_ratio", "0"), r"expected a number in \(0, 1\], got 0"),
+    (("--stall_ratio", "1.5"), r"expected a number in \(0, 1\], got 1.5"),
+    (("--stall_ratio", "half"), r"expected a number in \(0, 1\], got 'half'"),
+    (("--stall_ratio", "0.4", "--teacher_force_time"), "ground truth, which never stalls"),
+    (("--stall_ratio", "0.4", "--num_prompt_frames", "1"), "needs --num_prompt_frames >= 2, got 1"),
 ])
-def test_bad_stall_thresholds_are_usage_errors(setup, tmp_path, capsys, extra, pattern):
+def test_bad_stall_ratios_are_usage_errors(setup, tmp_path, capsys, extra, pattern):
     with pytest.raises(SystemExit):
         run(setup, tmp_path, *extra)
     assert re.search(pattern, capsys.readouterr().err)

@@ -71,7 +71,7 @@ def test_main_job_pipeline_tiny(tmp_path):
     assert (rollout["temperature"], rollout["copy_bias"], rollout["greedy_tokens"]) == (0.0, 2.0, "best_neighbour")
     sampled = json.loads((out / "metrics_rollout_sampled.json").read_text())
     assert (sampled["temperature"], sampled["copy_bias"], sampled["num_examples"]) == (1.0, 2.0, 1)
-    assert rollout["stall_threshold"] is None and generated["stall_threshold"] is None  # off unless asked for
+    assert rollout["stall_ratio"] is None and generated["stall_ratio"] is None  # off unless asked for
     assert json.loads((out / "metrics_rollout_sampled_unseen.json").read_text())["temperature"] == 1.0
     unseen = json.loads((out / "metrics_unseen.json").read_text())
     assert unseen["num_examples"] == 1 and unseen["copy_acc"] == metrics["copy_acc"]  # same val split here
@@ -95,7 +95,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
                BUILD_ARGS=f"--train_maps MAP01 --val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
                LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SAMPLED_ROLLOUT_ARGS="",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
-               UNSEEN_DIR=str(tmp_path / "none"), STALL_THRESHOLD="0.4")
+               UNSEEN_DIR=str(tmp_path / "none"), STALL_RATIO="0.4")
     subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True,
                    timeout=600)
@@ -107,6 +107,6 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     windows = len(RawTokenDataset(tmp_path / "world" / "val", window_size=16, stride=15, filter_overlaps=True))
     assert metrics["num_examples"] == windows  # the recipe evaluates every validation window
     rollout = json.loads((tmp_path / "model" / "metrics_rollout.json").read_text())
-    assert rollout["protocol"] == "rollout" and rollout["stall_threshold"] == 0.4  # STALL_THRESHOLD reaches both
-    assert json.loads((tmp_path / "model" / "generated" / "metadata.json").read_text())["stall_threshold"] == 0.4
+    assert rollout["protocol"] == "rollout" and rollout["stall_ratio"] == 0.4  # STALL_RATIO reaches both
+    assert json.loads((tmp_path / "model" / "generated" / "metadata.json").read_text())["stall_ratio"] == 0.4
     assert not (tmp_path / "model" / "metrics_rollout_sampled.json").exists()
