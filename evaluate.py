@@ -75,8 +75,8 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import (add_device_arg, add_stall_ratio_arg, add_token_choice_args, resolve_device,
-                        setup_logging)
+from common.cli import (add_device_arg, add_stall_ratio_arg, add_token_choice_args, check_stall_ratio,
+                        resolve_device, setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError
 from common.images import psnr, ssim
@@ -86,7 +86,7 @@ from genie.config import check_dataset_matches
 from genie.copy_ceiling import ceiling_rollout
 from genie.metrics import RunningMean, factored_cross_entropy, images_to_unit_range
 from genie.sampling import UNMASK_MODES
-from genie.inference import generate, teacher_forced
+from genie.inference import changed_share, generate, teacher_forced
 from genie.model import STMaskGIT
 from lam.data import valid_targets
 from lam.probe import action_probe, transition_labels
@@ -210,9 +210,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         if args.save_outputs_dir is not None:
             parser.error(f"--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
                          f"{args.protocol}")
-        if args.stall_ratio is not None and args.num_prompt_frames < 2:
-            parser.error(f"--stall_ratio compares generated frames with the prompt's motion: it needs "
-                         f"--num_prompt_frames >= 2, got {args.num_prompt_frames}")
+        check_stall_ratio(parser, args.stall_ratio, args.num_prompt_frames)
     elif args.num_prompt_frames is not None:
         parser.error("--num_prompt_frames applies to --protocol rollout and copy_ceiling only")
     if args.val_data_dir is None:
@@ -363,7 +361,7 @@ def token_statistics(pred_NhHW: torch.Tensor, last_NHW: torch.Tensor, future_NhH
     stats = {}
     for name, frames_NhHW in (("rollout", pred_NhHW), ("true", future_NhHW)):
         before_NhHW = torch.cat([last_NHW.unsqueeze(1), frames_NhHW[:, :-1]], dim=1)
-        stats[f"{name}_unchanged"] = (frames_NhHW == before_NhHW).float().mean(dim=(2, 3))
+        stats[f"{name}_unchanged"] = 1 - changed_share(frames_NhHW, before_NhHW)
         stats[f"{name}_repeated"] = (frames_NhHW[..., 1:] == frames_NhHW[..., :-1]).float().mean(dim=(2, 3))
     return stats
 

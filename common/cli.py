@@ -95,6 +95,13 @@ def add_stall_ratio_arg(parser) -> None:
                              "at least 2 prompt frames. Teacher-forced predictions are unaffected.")
 
 
+def check_stall_ratio(parser, stall_ratio, num_prompt_frames: int) -> None:
+    """Usage error when --stall_ratio is set but the prompt has fewer than the 2 frames its motion is measured on."""
+    if stall_ratio is not None and num_prompt_frames < 2:
+        parser.error(f"--stall_ratio compares generated frames with the prompt's motion: it needs --num_prompt_frames "
+                     f">= 2, got {num_prompt_frames}")
+
+
 def add_num_threads_arg(parser) -> None:
     parser.add_argument("--num_threads", type=int, default=0,
                         help="CPU threads for torch (0: torch's default); 1 gives steadier, often faster runs of "

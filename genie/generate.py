@@ -28,7 +28,8 @@ import torch
 from einops import rearrange
 from tqdm.auto import tqdm
 
-from common.cli import add_device_arg, add_stall_ratio_arg, add_token_choice_args, resolve_device, setup_logging
+from common.cli import (add_device_arg, add_stall_ratio_arg, add_token_choice_args, check_stall_ratio, resolve_device,
+                        setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
@@ -100,9 +101,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         if len(args.latent_actions) != num_new:
             p.error(f"--latent_actions: {len(args.latent_actions)} ids for {num_new} generated frames "
                     f"(window_size {args.window_size} - num_prompt_frames {args.num_prompt_frames})")
-    if args.stall_ratio is not None and args.num_prompt_frames < 2:
-        p.error(f"--stall_ratio compares generated frames with the prompt's motion: it needs --num_prompt_frames >= 2, "
-                f"got {args.num_prompt_frames}")
+    check_stall_ratio(p, args.stall_ratio, args.num_prompt_frames)
     if args.teacher_force_time and args.stall_ratio is not None:
         p.error("--stall_ratio holds stalled free-running futures; --teacher_force_time predicts each frame from "
                 "the ground truth, which never stalls")
