@@ -198,6 +198,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         if args.ceiling_radius < 0 or args.ceiling_block < 1:
             parser.error(f"--ceiling_radius must be >= 0 and --ceiling_block >= 1, got {args.ceiling_radius} and "
                          f"{args.ceiling_block}")
+        if args.stall_ratio is not None:
+            parser.error("--stall_ratio is a decoding rule for a model's futures; --protocol copy_ceiling has no model")
     elif args.ceiling_radius is not None or args.ceiling_block is not None:
         parser.error("--ceiling_radius and --ceiling_block apply to --protocol copy_ceiling only")
     if args.protocol in ("rollout", "copy_ceiling"):

@@ -122,6 +122,7 @@ def test_the_ceiling_follows_a_panning_camera(tiny, tmp_path, capsys):
 @pytest.mark.parametrize("extra, code, message", [
     (["--protocol", "rollout", "--ceiling_block", "2"], 2, "apply to --protocol copy_ceiling only"),
     (["--protocol", "copy_ceiling", "--ceiling_radius", "-1"], 2, "--ceiling_radius must be >= 0"),
+    (["--protocol", "copy_ceiling", "--stall_ratio", "0.5"], 2, "--protocol copy_ceiling has no model"),
     (["--protocol", "copy_ceiling", "--num_prompt_frames", "3", "--ceiling_block", "3"], 1,
      "--ceiling_block 3 does not divide the 4 x 4"),
 ])
