@@ -165,13 +165,16 @@ class TrainingRecipe:
     two_stream_ratio: float = 0.0
     # of the two-stream targets, this share is partly masked (MaskGIT's cosine rate) instead of whole
     two_stream_partial_ratio: float = 0.0
-    # this share of the examples has part of its masked tokens filled with the model's own greedy guesses, as
-    # MaskGIT's later steps see them at inference, so the model learns how far to trust them
+    # this share of the examples has part of its masked tokens filled with the model's own guesses, as MaskGIT's
+    # later steps see them at inference, so the model learns how far to trust them
     self_reveal_ratio: float = 0.0
-    # this share of the examples first has each fully masked frame filled with the model's own greedy prediction,
+    # this share of the examples first has each fully masked frame filled with the model's own prediction,
     # and the frame after it becomes the target instead: predicted from a context whose last frame is the model's
     # guess, as every frame after the first is in a free-running rollout
     own_context_ratio: float = 0.0
+    # the temperature of those guesses: 0 each factor's argmax (the greedy guesses these options began with); > 0
+    # whole tokens drawn from the model's distribution (a copy head's mixture), as sampled rollouts reveal them
+    guess_temperature: float = 0.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

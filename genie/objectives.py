@@ -15,7 +15,7 @@ from genie.config import TrainingRecipe
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import context_cache
 from genie.masking import MaskGITBatch
-from genie.sampling import sample_factored_tokens
+from genie.sampling import sample_factored_tokens, sample_mixture_tokens
 from genie.schedule import cosine_schedule
 from genie.transformer import TemporalMode
 
@@ -30,11 +30,11 @@ def training_loss(model, batch: MaskGITBatch, recipe: TrainingRecipe) -> LossOut
     """The loss of a collated batch: two-stream when it has targets, else the masked-token loss."""
     if batch.target_ids is not None:
         return two_stream_loss(model, batch)
-    return masked_loss(model, batch, recipe.self_reveal_ratio, recipe.own_context_ratio)
+    return masked_loss(model, batch, recipe.self_reveal_ratio, recipe.own_context_ratio, recipe.guess_temperature)
 
 
 def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0,
-                own_context_ratio: float = 0.0) -> LossOutput:
+                own_context_ratio: float = 0.0, guess_temperature: float = 0.0) -> LossOutput:
     """Factored CE and accuracy over the masked tokens of frames 1..T-1 of batch.input_ids (B, T, H, W).
 
     In training mode a share own_context_ratio of the examples first predicts its fully masked frames and is then
@@ -46,9 +46,9 @@ def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0,
     B, T = x_BTHW.shape[:2]
     cond_BTC = model.action_embeds(B, T, batch.actions, batch.latent_actions)
     if model.training and own_context_ratio > 0:
-        x_BTHW = shift_targets_past_own_frames(model, x_BTHW, cond_BTC, own_context_ratio)
+        x_BTHW = shift_targets_past_own_frames(model, x_BTHW, cond_BTC, own_context_ratio, guess_temperature)
     if model.training and self_reveal_ratio > 0:
-        x_BTHW = reveal_own_predictions(model, x_BTHW, cond_BTC, self_reveal_ratio)
+        x_BTHW = reveal_own_predictions(model, x_BTHW, cond_BTC, self_reveal_ratio, guess_temperature)
     sources_BTSK = model.window_copy_sources(x_BTHW)
     x_BTSC = model.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
     relevant_BTS = rearrange(x_BTHW == model.mask_token_id, "B T H W -> B T (H W)")
@@ -57,14 +57,22 @@ def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0,
 
 
 @torch.no_grad()
-def greedy_guesses(model, x_bTHW: torch.Tensor, cond_bTC: Optional[torch.Tensor],
-                   where_bTHW: torch.Tensor) -> torch.Tensor:
-    """The model's greedy one-pass predictions (N,) of the positions `where_bTHW` (b, T, H, W) of x_bTHW."""
+def own_guesses(model, x_bTHW: torch.Tensor, cond_bTC: Optional[torch.Tensor],
+                where_bTHW: torch.Tensor, temperature: float = 0.0) -> torch.Tensor:
+    """The model's one-pass predictions (N,) of the positions `where_bTHW` (b, T, H, W) of x_bTHW: each factor's
+    argmax at temperature 0; above it whole tokens drawn as a sampled rollout draws them (a copy head's mixture:
+    `sample_mixture_tokens`; a factored readout: each factor), from torch's global random numbers."""
     where_bTS = rearrange(where_bTHW, "b T H W -> b T (H W)")
     sources_bTSK = model.window_copy_sources(x_bTHW)
     hidden_NC = model.hidden_states(x_bTHW, cond_bTC, sources_BTSK=sources_bTSK)[where_bTS]
-    logits_1VFN = rearrange(model.readout(hidden_NC, None if sources_bTSK is None else sources_bTSK[where_bTS]),
-                            "N V F -> 1 V F N")
+    sources_NK = None if sources_bTSK is None else sources_bTSK[where_bTS]
+    if temperature > 0:
+        prediction = model.predict(hidden_NC, sources_NK, with_mode=True, greedy=False)
+        if prediction.copy_log_weights is not None:
+            return sample_mixture_tokens(prediction.copy_log_weights, prediction.copy_sources,
+                                         prediction.readout_logits, temperature)[0]
+        return sample_factored_tokens(rearrange(prediction.logits, "N V F -> 1 V F N"), temperature)[0][0]
+    logits_1VFN = rearrange(model.readout(hidden_NC, sources_NK), "N V F -> 1 V F N")
     # each factor's argmax: for a copy head, not the joint mode that inference decodes with (`CopyHead.mode`);
     # the trained recipe's guesses are kept as they were
     return sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]
@@ -72,10 +80,11 @@ def greedy_guesses(model, x_bTHW: torch.Tensor, cond_bTC: Optional[torch.Tensor]
 
 @torch.no_grad()
 def shift_targets_past_own_frames(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
-                                  ratio: float) -> torch.Tensor:
+                                  ratio: float, temperature: float = 0.0) -> torch.Tensor:
     """Training inputs (B, T, H, W) whose targets follow the model's own frames, for a share `ratio` of the
-    examples: each fully masked frame t >= 1 is filled with the model's greedy one-pass prediction (one extra pass
-    without gradients) and frame t+1, when it exists and is not fully masked itself, is masked whole instead.
+    examples: each fully masked frame t >= 1 is filled with the model's one-pass prediction (`own_guesses` at
+    `temperature`; one extra pass without gradients) and frame t+1, when it exists and is not fully masked itself,
+    is masked whole instead.
 
     In a free-running rollout every generated frame after the first is predicted from a context whose last frames
     are the model's own guesses (on the sample world mostly wrong tokens, and what the copy head copies from); a
@@ -88,7 +97,7 @@ def shift_targets_past_own_frames(model, x_BTHW: torch.Tensor, cond_BTC: Optiona
         return x_BTHW
     x_bTHW, whole_bT = x_BTHW[chosen_B], whole_BT[chosen_B]  # a copy
     fill_bTHW = whole_bT[:, :, None, None].expand_as(x_bTHW)
-    guesses_N = greedy_guesses(model, x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B], fill_bTHW)
+    guesses_N = own_guesses(model, x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B], fill_bTHW, temperature)
     next_bT = torch.zeros_like(whole_bT)
     next_bT[:, 1:] = whole_bT[:, :-1] & ~whole_bT[:, 1:]
     x_bTHW[fill_bTHW] = guesses_N
@@ -98,14 +107,15 @@ def shift_targets_past_own_frames(model, x_BTHW: torch.Tensor, cond_BTC: Optiona
 
 @torch.no_grad()
 def reveal_own_predictions(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
-                           ratio: float) -> torch.Tensor:
+                           ratio: float, temperature: float = 0.0) -> torch.Tensor:
     """Training inputs (B, T, H, W) as a later MaskGIT step sees them: for a share `ratio` of the examples, a
-    random share 1 - cos(pi/2 u), u ~ U(0, 1), of each frame's masked tokens is filled with the model's own greedy
-    prediction (one extra pass without gradients).
+    random share 1 - cos(pi/2 u), u ~ U(0, 1), of each frame's masked tokens is filled with the model's own
+    prediction (`own_guesses` at `temperature`; one extra pass without gradients).
 
     At inference the tokens revealed after step 1 are the model's guesses (on the sample world ~11 % of them
     right), not the ground truth that published masking reveals; a model trained only on ground truth trusts
-    them, and its second step gets worse than its first.
+    them, and its second step gets worse than its first. Sampled rollouts reveal drawn tokens instead of the
+    argmax, which a temperature > 0 shows the model.
     """
     chosen_B = torch.rand(x_BTHW.shape[0], device=x_BTHW.device) < ratio
     if not chosen_B.any():
@@ -113,7 +123,8 @@ def reveal_own_predictions(model, x_BTHW: torch.Tensor, cond_BTC: Optional[torch
     x_bTHW = x_BTHW[chosen_B]  # a copy
     masked_bTHW = x_bTHW == model.mask_token_id
     masked_bTHW[:, 0] = False
-    guesses_N = greedy_guesses(model, x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B], masked_bTHW)
+    guesses_N = own_guesses(model, x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B], masked_bTHW,
+                            temperature)
     share_bT11 = 1 - cosine_schedule(torch.rand(*masked_bTHW.shape[:2], 1, 1, device=x_BTHW.device))
     reveal_bTHW = masked_bTHW & (torch.rand(masked_bTHW.shape, device=x_BTHW.device) < share_bT11)
     x_bTHW[masked_bTHW] = torch.where(reveal_bTHW[masked_bTHW], guesses_N, model.mask_token_id)

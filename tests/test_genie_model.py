@@ -415,8 +415,80 @@ def test_own_context_fills_whole_masked_frames_with_greedy_guesses_and_targets_t
                                full_logits_loss(model, batch).loss)  # eval mode: the targets stay
 
 
+@pytest.mark.parametrize("variant", ["plain", "copy_match"])
+def test_guesses_at_a_temperature_are_draws_from_the_models_distribution(variant):
+    model = variant_model(variant)
+    config = model.config
+    x = random_tokens(config, B=3, T=4, mask_rate=0.7)
+    was_masked = x == config.mask_token_id
+    draws = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        revealed = reveal_own_predictions(model, x, None, ratio=1.0, temperature=1.0)
+        assert torch.equal(revealed[~was_masked], x[~was_masked]), "given tokens stay"
+        draws.append(revealed)
+    filled = was_masked & (draws[0] != config.mask_token_id) & (draws[1] != config.mask_token_id)
+    assert filled.sum() > 10
+    assert not torch.equal(draws[0][filled], draws[1][filled]), "other random numbers, other draws"
+    with torch.no_grad():
+        logits = model.logits(x).transpose(1, 2)  # (B, F, V, T, H, W)
+    greedy = logits[:, 0].argmax(1) + config.factored_vocab_size * logits[:, 1].argmax(1)
+    assert (draws[0][filled] != greedy[filled]).any(), "not the greedy guesses"
+    # a distribution with all its mass on one token is drawn as that token
+    with torch.no_grad():
+        if model.copy_head is None:
+            model.out_x_proj.weight.mul_(1e4)  # each factor's softmax becomes its argmax
+            expected = greedy
+        else:  # every weight on the neighbour at the same position: the token there in the frame before
+            model.copy_head.score_proj.weight.zero_()
+            model.copy_head.score_proj.bias.fill_(-1e4)
+            model.copy_head.score_proj.bias[model.copy_head.num_sources // 2] = 0.0
+            expected = torch.cat([x[:, :1], x[:, :-1]], dim=1)
+    torch.manual_seed(2)
+    sharp = reveal_own_predictions(model, x, None, ratio=1.0, temperature=1.0)
+    known = (sharp != config.mask_token_id) & was_masked & (expected != config.mask_token_id)
+    assert known.sum() > 5
+    assert torch.equal(sharp[known], expected[known])
+    torch.manual_seed(3)
+    shifted = shift_targets_past_own_frames(model, x.masked_fill(torch.zeros_like(was_masked).index_fill_(
+        1, torch.tensor([2]), True), config.mask_token_id), None, ratio=1.0, temperature=1.0)
+    if model.copy_head is None:
+        assert torch.equal(shifted[:, 2], greedy_of(model, x, frame=2))
+    else:
+        copied = expected[:, 2] != config.mask_token_id
+        assert torch.equal(shifted[:, 2][copied], expected[:, 2][copied])
+
+
+def greedy_of(model, x, frame):
+    """Each factor's argmax for `frame` of x with that frame masked whole (B, H, W)."""
+    window = x.clone()
+    window[:, frame] = model.config.mask_token_id
+    with torch.no_grad():
+        logits = model.logits(window).transpose(1, 2)[:, :, :, frame]  # (B, F, V, H, W)
+    return logits[:, 0].argmax(1) + model.config.factored_vocab_size * logits[:, 1].argmax(1)
+
+
+def test_guess_temperature_reaches_the_training_loss():
+    model = variant_model("copy_match")
+    config = model.config
+    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    x = labels.masked_fill(torch.rand(labels.shape, generator=torch.Generator().manual_seed(1)) < 0.8,
+                           config.mask_token_id)
+    model.train()
+    losses = {}
+    for temperature in (0.0, 1.0):
+        torch.manual_seed(5)
+        losses[temperature] = model(MaskGITBatch(x, labels), TrainingRecipe(self_reveal_ratio=1.0,
+                                                                             guess_temperature=temperature)).loss
+    torch.manual_seed(5)
+    revealed = reveal_own_predictions(model, x, None, ratio=1.0, temperature=1.0)
+    torch.testing.assert_close(losses[1.0], full_logits_loss(model.eval(), MaskGITBatch(revealed, labels)).loss)
+    assert not torch.allclose(losses[0.0], losses[1.0])
+
+
 @pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio", "two_stream_ratio",
-                                   "two_stream_partial_ratio", "self_reveal_ratio", "own_context_ratio"])
+                                   "two_stream_partial_ratio", "self_reveal_ratio", "own_context_ratio",
+                                   "guess_temperature"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
         TrainingRecipe(**{field: 1.5})
