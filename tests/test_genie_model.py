@@ -496,10 +496,11 @@ def test_training_ratios_must_be_probabilities(field):
 
 def test_one_config_file_holds_architecture_and_recipe_and_legacy_keys_load(tmp_path):
     d = {**tiny_config(qk_norm=True).to_dict(), "max_corrupt_rate": 0.05, "teacher_forced_ratio": 1.0,
-         "self_reveal_ratio": 0.5}
+         "self_reveal_ratio": 0.5, "guess_temperature": 1.0}
     config, recipe = GenieConfig.from_dict(d), TrainingRecipe.from_dict(d)
     assert config == tiny_config(qk_norm=True)
-    assert recipe == TrainingRecipe(max_corrupt_rate=0.05, whole_frame_mask_ratio=1.0, self_reveal_ratio=0.5)
+    assert recipe == TrainingRecipe(max_corrupt_rate=0.05, whole_frame_mask_ratio=1.0, self_reveal_ratio=0.5,
+                                    guess_temperature=1.0)
     with pytest.raises(ConfigError, match="unknown key"):
         TrainingRecipe.from_dict({**d, "rope": True})
     # a checkpoint saved with its recipe loads as the architecture; the recipe reads back from the same file
