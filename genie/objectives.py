@@ -15,7 +15,7 @@ from genie.config import TrainingRecipe
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import context_cache
 from genie.masking import MaskGITBatch
-from genie.sampling import sample_factored_tokens, sample_mixture_tokens
+from genie.sampling import sample_prediction_tokens
 from genie.schedule import cosine_schedule
 from genie.transformer import TemporalMode
 
@@ -60,22 +60,17 @@ def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0,
 def own_guesses(model, x_bTHW: torch.Tensor, cond_bTC: Optional[torch.Tensor],
                 where_bTHW: torch.Tensor, temperature: float = 0.0) -> torch.Tensor:
     """The model's one-pass predictions (N,) of the positions `where_bTHW` (b, T, H, W) of x_bTHW: each factor's
-    argmax at temperature 0; above it whole tokens drawn as a sampled rollout draws them (a copy head's mixture:
-    `sample_mixture_tokens`; a factored readout: each factor), from torch's global random numbers."""
+    argmax at temperature 0; above it tokens drawn as a sampled rollout draws them (`sample_prediction_tokens`),
+    from torch's global random numbers."""
     where_bTS = rearrange(where_bTHW, "b T H W -> b T (H W)")
     sources_bTSK = model.window_copy_sources(x_bTHW)
     hidden_NC = model.hidden_states(x_bTHW, cond_bTC, sources_BTSK=sources_bTSK)[where_bTS]
     sources_NK = None if sources_bTSK is None else sources_bTSK[where_bTS]
-    if temperature > 0:
-        prediction = model.predict(hidden_NC, sources_NK, with_mode=True, greedy=False)
-        if prediction.copy_log_weights is not None:
-            return sample_mixture_tokens(prediction.copy_log_weights, prediction.copy_sources,
-                                         prediction.readout_logits, temperature)[0]
-        return sample_factored_tokens(rearrange(prediction.logits, "N V F -> 1 V F N"), temperature)[0][0]
-    logits_1VFN = rearrange(model.readout(hidden_NC, sources_NK), "N V F -> 1 V F N")
-    # each factor's argmax: for a copy head, not the joint mode that inference decodes with (`CopyHead.mode`);
-    # the trained recipe's guesses are kept as they were
-    return sample_factored_tokens(logits_1VFN, temperature=0.0)[0][0]
+    # at temperature 0 each factor's argmax: for a copy head, not the joint mode that inference decodes with
+    # (`CopyHead.mode`); the trained recipe's guesses are kept as they were
+    prediction = model.predict(hidden_NC, sources_NK, with_mode=temperature > 0, greedy=False)
+    prediction_1S = prediction.map(lambda v: rearrange(v, "N V F -> 1 V F N"), lambda v: v.unsqueeze(0))
+    return sample_prediction_tokens(prediction_1S, temperature)[0][0]
 
 
 @torch.no_grad()

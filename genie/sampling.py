@@ -105,6 +105,21 @@ def sample_mixture_tokens(log_weights_NK1: torch.Tensor, sources_NK: torch.Tenso
     return ids_M.view(shape), probs_M.view(shape)
 
 
+def sample_prediction_tokens(prediction_BS: Prediction, temperature: float,
+                             generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Tokens drawn from a prediction at S positions of B rows: (ids (B, S), confidence (B, S)).
+
+    prediction_BS: logits and readout_logits (B, V, F, S), the copy parts (B, S, K + 1) and (B, S, K). At a
+    temperature a copy head's mixture draws whole tokens (`sample_mixture_tokens`) and any other prediction each
+    factor (`sample_factored_tokens`, which at temperature <= GREEDY_TEMPERATURE takes each factor's argmax).
+    """
+    if prediction_BS.copy_log_weights is not None and temperature > GREEDY_TEMPERATURE:
+        return sample_mixture_tokens(prediction_BS.copy_log_weights, prediction_BS.copy_sources,
+                                     rearrange(prediction_BS.readout_logits, "B V F S -> B S V F"), temperature,
+                                     generator)
+    return sample_factored_tokens(prediction_BS.logits, temperature, generator)
+
+
 def maskgit_sample(logits_fn: Callable[[torch.Tensor], Union[torch.Tensor, Prediction]], frame_BHW: torch.Tensor,
                    mask_token_id: int, maskgit_steps: int, temperature: float = 0.0, unmask_mode: str = "random",
                    generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -139,12 +154,9 @@ def maskgit_sample(logits_fn: Callable[[torch.Tensor], Union[torch.Tensor, Predi
             first_logits = logits_BVFHW
         if prediction.mode_ids is not None and temperature <= GREEDY_TEMPERATURE:
             tokens_BS, confidence_BS = prediction.mode_ids.reshape(B, S), prediction.mode_probs.reshape(B, S)
-        elif prediction.copy_log_weights is not None and temperature > GREEDY_TEMPERATURE:
-            tokens_BS, confidence_BS = sample_mixture_tokens(
-                prediction.copy_log_weights.reshape(B, S, -1), prediction.copy_sources.reshape(B, S, -1),
-                rearrange(prediction.readout_logits.flatten(3), "B V F S -> B S V F"), temperature, generator)
         else:
-            tokens_BS, confidence_BS = sample_factored_tokens(logits_BVFHW.flatten(3), temperature, generator)
+            tokens_BS, confidence_BS = sample_prediction_tokens(prediction.map(
+                lambda v: v.flatten(3), lambda v: v.reshape(B, S, *v.shape[3:])), temperature, generator)
         masked_BS = frame_BS == mask_token_id
         reveal_BS = masked_BS
         num_left = num_masked_after_step(step, maskgit_steps, S)
