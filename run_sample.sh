@@ -18,7 +18,7 @@
 # (extra evaluate.py flags of the three evaluations), SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout
 # evaluation), COPY_BIAS and GREEDY_TOKENS change the defaults below. STALL_RATIO (off unless set) turns on
 # the stall rule for the futures (--stall_ratio: a future whose frame changes at most that fraction of what the
-# prompt's frames change holds that frame; the README measures 0.66 for the model without actions:
+# prompt's frames change holds that frame; docs/experiments.md measures 0.66 for the model without actions:
 # GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS= STALL_RATIO=0.66 ./run_sample.sh). run_gpu.sh is
 # this job at a GPU's scale.
 # When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated
@@ -34,8 +34,9 @@ TRAIN=$SAMPLE_DIR/train
 VAL=$SAMPLE_DIR/val
 # how the generated futures are decoded (GIF, comic, rollouts): the pointer's neighbours weighted e^2 against a new
 # token, and a greedy copy takes the single most weighted neighbour's token (not the token with the most summed
-# weight, which grows flat patches): sharper futures at the same PSNR (README). COPY_BIAS=0 for a model without the
-# pointer (copy_radius); GREEDY_TOKENS=joint decodes greedy futures as the model's most probable tokens.
+# weight, which grows flat patches): sharper futures at the same PSNR (docs/experiments.md). COPY_BIAS=0 for a
+# model without the pointer (copy_radius); GREEDY_TOKENS=joint decodes greedy futures as the model's most probable
+# tokens.
 DECODE_ARGS="--copy_bias ${COPY_BIAS:-2} --greedy_tokens ${GREEDY_TOKENS:-best_neighbour}"
 DECODE_ARGS+="${STALL_RATIO:+ --stall_ratio $STALL_RATIO}"
 [ -f "$TRAIN/metadata.json" ] || { echo "run_sample.sh: $TRAIN is missing; run ./build.sh first" >&2; exit 1; }
