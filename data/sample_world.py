@@ -106,6 +106,8 @@ class WorldConfig:
             raise ValueError("WorldConfig needs 0 < near_depth < caution_depth <= clear_depth")
         if not self.turn_speed > 0:
             raise ValueError(f"WorldConfig needs turn_speed > 0 (degrees per tic), got {self.turn_speed}")
+        if not self.walk_speed > 0:
+            raise ValueError(f"WorldConfig needs walk_speed > 0, got {self.walk_speed}")
 
 
 def _hold(rng: np.random.Generator, lo: int, hi: int) -> int:

@@ -92,6 +92,9 @@ def parse_args(argv=None):
                    help="degrees the walker turns per tic while a turn button is held (default %(default)s: 13 "
                         "degrees per 15-tic window step; 1.75 was the default before, 26 degrees); lower makes a "
                         "world whose view moves less per step")
+    p.add_argument("--walk_speed", type=float, default=WorldConfig.walk_speed,
+                   help="forward/backward input while a move button is held (default %(default)s, half of Doom's "
+                        "walk: up to ~62 map units per 15-tic window step); lower makes a slower walker")
     p.add_argument("--tokenizer_ckpt", default=SHIPPED_TOKENIZER,
                    help="tokenizer checkpoint directory used to encode the frames (default: the shipped one)")
     add_hidden_alias(p, "--tokenizer", "tokenizer_ckpt")
@@ -104,6 +107,8 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if not args.turn_speed > 0:
         p.error(f"--turn_speed must be > 0 degrees per tic, got {args.turn_speed}")
+    if not args.walk_speed > 0:
+        p.error(f"--walk_speed must be > 0, got {args.walk_speed}")
     return args
 
 
@@ -113,7 +118,8 @@ def main(argv=None):
     raw = out / "raw"
     build_sample_world(raw, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=1, episode_len=args.episode_len,
-                       overwrite=args.overwrite, cfg=WorldConfig(turn_speed=args.turn_speed))
+                       overwrite=args.overwrite,
+                       cfg=WorldConfig(turn_speed=args.turn_speed, walk_speed=args.walk_speed))
     if args.train_tokenizer:
         tokenizer_dir = train_tokenizer(raw, out / "tokenizer")
         tokenizer_ref = str(tokenizer_dir)

@@ -224,9 +224,11 @@ def test_other_walker_turns_by_its_turn_speed():
     np.testing.assert_allclose(angular[right], -turn_rate, rtol=0.02)
     with pytest.raises(ValueError, match="turn_speed > 0"):
         sw.WorldConfig(turn_speed=0.0)
+    with pytest.raises(ValueError, match="walk_speed > 0"):
+        sw.WorldConfig(walk_speed=-1.0)
 
 
-def test_build_sample_passes_turn_speed(tmp_path, monkeypatch, capsys):
+def test_build_sample_passes_turn_and_walk_speed(tmp_path, monkeypatch, capsys):
     from magvit2 import build_sample
 
     seen = {}
@@ -245,3 +247,9 @@ def test_build_sample_passes_turn_speed(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit, match="2"):
         build_sample.main(["--output_dir", str(tmp_path), "--turn_speed", "0"])
     assert "--turn_speed must be > 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        build_sample.main(["--output_dir", str(tmp_path), "--walk_speed", "6.25"])
+    assert seen["cfg"].walk_speed == 6.25 and seen["cfg"].turn_speed == sw.WorldConfig().turn_speed
+    with pytest.raises(SystemExit, match="2"):
+        build_sample.main(["--output_dir", str(tmp_path), "--walk_speed", "0"])
+    assert "--walk_speed must be > 0" in capsys.readouterr().err
