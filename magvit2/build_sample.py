@@ -105,10 +105,9 @@ def parse_args(argv=None):
     add_device_arg(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild every step even if outputs exist")
     args = p.parse_args(argv)
-    if not args.turn_speed > 0:
-        p.error(f"--turn_speed must be > 0 degrees per tic, got {args.turn_speed}")
-    if not args.walk_speed > 0:
-        p.error(f"--walk_speed must be > 0, got {args.walk_speed}")
+    for name in ("turn_speed", "walk_speed"):
+        if not getattr(args, name) > 0:
+            p.error(f"--{name} must be > 0, got {getattr(args, name)}")
     return args
 
 
