@@ -152,12 +152,14 @@ def test_8_layer_config_is_the_benchmark_shape():
 
 @pytest.mark.parametrize("small, large", [("sample_world", "gpu_world"), ("sample_world_actions", "gpu_world_actions")])
 def test_gpu_recipe_configs_are_the_cpu_models_scaled(small, large):
-    """run_gpu.sh's models differ from the CPU defaults in size alone, so the two recipes' numbers compare."""
+    """run_gpu.sh's models differ from the CPU defaults in size alone (depth, width and the number of heads, at the
+    CPU model's head width), so the two recipes' numbers compare."""
     size = ("num_layers", "num_heads", "d_model")
     cpu, gpu = (json.loads((CONFIG_DIR / f"{name}.json").read_text()) for name in (small, large))
     assert {k: v for k, v in gpu.items() if k not in size} == {k: v for k, v in cpu.items() if k not in size}
+    assert gpu["d_model"] // gpu["num_heads"] == cpu["d_model"] // cpu["num_heads"]
     config = GenieConfig.from_pretrained(CONFIG_DIR / f"{large}.json")
-    assert (config.num_layers, config.num_heads, config.d_model) == (8, 8, 256)
+    assert (config.num_layers, config.d_model) == (8, 256)
     params = sum(p.numel() for p in STMaskGIT(config).parameters())
     assert 9.9e6 < params < 10.1e6  # the README's 10.0 M
 
