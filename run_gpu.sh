@@ -4,9 +4,11 @@
 #      maps with the same seed, so its validation split is byte for byte the default world's and every number
 #      compares with the CPU default's (rendering ~1 min, tokenizing on the GPU);
 #   2. ./run_sample.sh on it with genie/configs/gpu_world_actions.json (8 layers, d_model 256: 10 M parameters, the
-#      main command's model otherwise), STEPS (default 6000) steps of 32 windows, bf16 autocast and torch.compile
-#      (train.py's defaults on CUDA), then every evaluation of the main command, teacher-forced on all validation
-#      windows, and on data/unseen too when ./build.sh --unseen made it.
+#      main command's model otherwise), STEPS (default 6000) steps of 32 windows at learning rate 3e-3 (LR; the
+#      main command's 1e-2 diverges at this size: on an H200 the loss left 6 near step 79 and passed 1e6 by step
+#      120, with or without actions, while 3e-3 kept falling), bf16 autocast and torch.compile (train.py's
+#      defaults on CUDA), then every evaluation of the main command, teacher-forced on all validation windows,
+#      and on data/unseen too when ./build.sh --unseen made it.
 # The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO
 # as in run_sample.sh)
 # Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
@@ -30,4 +32,5 @@ fi
 export SAMPLE_DIR=$GPU_DIR OUT=${OUT:-data/genie_gpu} GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/gpu_world_actions.json}
 export EVAL_ARGS=${EVAL_ARGS-}
 exec ./run_sample.sh --per_device_train_batch_size 32 --max_train_steps "${STEPS:-6000}" --num_warmup_steps 300 \
+  --learning_rate "${LR:-3e-3}" \
   --eval_every_n_steps 1000 --max_eval_steps 32 --checkpointing_steps 1000 "$@"

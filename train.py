@@ -19,13 +19,16 @@ full disk ends the run with one line naming the last complete checkpoint. The da
 the epoch, and the collator's masking only on the seed and the position in the data, so a run resumed from a
 checkpoint takes exactly the steps the uninterrupted run would have taken. SIGTERM saves a checkpoint and exits cleanly.
 A step whose loss or gradient is NaN/inf is skipped; `--max_nonfinite_steps` of them in a row stop the run after
-saving a checkpoint of the last good weights (the data position is past the bad batches).
+saving a checkpoint of the last good weights (the data position is past the bad batches). A run whose loss stays
+above twice a uniform guess's for `--max_diverged_steps` steps in a row has diverged and stops with an error, its
+weights left unsaved: minutes instead of hours lost to a learning rate too high for the model.
 """
 import argparse
 import contextlib
 import dataclasses
 import importlib.util
 import logging
+import math
 import os
 import signal
 import sys
@@ -54,8 +57,8 @@ from genie.model import STMaskGIT
 from common.files import remove_stale_temp_dirs
 from common import muon
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
-                               checkpoint_dir, load_training_checkpoint, prune_checkpoints, resolve_resume_path,
-                               restore_rng_state, resume_hint, save_training_checkpoint)
+                               checkpoint_dir, list_checkpoints, load_training_checkpoint, prune_checkpoints,
+                               resolve_resume_path, restore_rng_state, resume_hint, save_training_checkpoint)
 
 logger = logging.getLogger("train")
 
@@ -131,6 +134,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--max_nonfinite_steps", type=int, default=5,
                    help="Stop (after saving a checkpoint) when this many steps in a row have a NaN/inf loss or "
                         "gradient; each one is skipped with a warning.")
+    g.add_argument("--max_diverged_steps", type=int, default=50,
+                   help="Stop with an error when this many optimizer steps in a row have a training loss above "
+                        "twice a uniform guess's (2 ln image_vocab_size: 25.0 for 2^18 tokens; a healthy run "
+                        "starts below one): the run has diverged, its weights are not saved, and the message "
+                        "names the last checkpoint. 0: never stop.")
     g.add_argument("--seed", type=int, default=42, help="Seed of initialization, data order and masking.")
     g.add_argument("--mixed_precision", default="auto", choices=("auto", "no", "bf16"),
                    help="auto: bf16 autocast on CUDA, fp32 on CPU. bf16 on a CPU with native bf16 (avx512_bf16, "
@@ -168,6 +176,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  "gradient_accumulation_steps", "max_nonfinite_steps"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.max_diverged_steps < 0:
+        p.error(f"--max_diverged_steps must be >= 0, got {args.max_diverged_steps}")
     if args.max_train_steps is not None and args.max_train_steps < 0:
         p.error(f"--max_train_steps must be >= 0, got {args.max_train_steps}")
     if args.use_latent_actions is not None and args.use_latent_actions < 1:
@@ -319,6 +329,8 @@ class Trainer:
             self.optimizer, lr_multiplier(args.lr_scheduler_type, args.num_warmup_steps, self.max_steps))
         self.step = 0
         self.consecutive_nonfinite = 0
+        self.consecutive_diverged = 0
+        self.diverged_loss = 2 * math.log(config.image_vocab_size)
         self.last_saved_step = None
         self.resume()
         self.ddp_model, self.ddp_optimizer = accelerator.prepare(self.model, self.optimizer)
@@ -443,6 +455,20 @@ class Trainer:
                 f"The weights of the last good step are saved in {checkpoint_dir(self.args.output_dir, self.step)} "
                 f"(lower --learning_rate, check the data, or resume from it to skip the bad batches)")
 
+    def handle_divergence(self, loss: float) -> None:
+        """Count the steps in a row whose loss is above twice a uniform guess's; too many stop the run."""
+        self.consecutive_diverged = self.consecutive_diverged + 1 if loss > self.diverged_loss else 0
+        limit = self.args.max_diverged_steps
+        if limit == 0 or self.consecutive_diverged < limit:
+            return
+        first = self.step - self.consecutive_diverged + 1
+        saved = list_checkpoints(self.args.output_dir)
+        last = f"the last checkpoint is {saved[-1][1]}" if saved else "no checkpoint was saved"
+        raise TrainingError(
+            f"training diverged: the loss stayed above {self.diverged_loss:.1f} (twice a uniform guess over "
+            f"{self.config.image_vocab_size} tokens) from step {first} to step {self.step} (loss {loss:.4g}); "
+            f"these weights are not saved and {last}. Lower --learning_rate or lengthen --num_warmup_steps")
+
     # ---- evaluation
     @torch.no_grad()
     def evaluate(self) -> dict:
@@ -508,6 +534,8 @@ class Trainer:
         self.step += 1
         loss_value = loss.item()
         self.handle_nonfinite(finite, loss_value)
+        if finite:
+            self.handle_divergence(loss_value)
         lr = self.scheduler.get_last_lr()[0]
         tokens_per_s = self.tokens_per_step / (time.perf_counter() - t0)
         bar.update(1)

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
+from common.train_state import list_checkpoints, load_training_checkpoint
 from data import RawTokenDataset
 from magvit2 import VQConfig, VQModel
 
@@ -95,7 +96,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
                BUILD_ARGS=f"--train_maps MAP01 --val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
                LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SAMPLED_ROLLOUT_ARGS="",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
-               UNSEEN_DIR=str(tmp_path / "none"), STALL_RATIO="0.4")
+               UNSEEN_DIR=str(tmp_path / "none"), STALL_RATIO="0.4", SKIP_BASELINES="1")
     subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True,
                    timeout=600)
@@ -110,3 +111,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     assert rollout["protocol"] == "rollout" and rollout["stall_ratio"] == 0.4  # STALL_RATIO reaches both
     assert json.loads((tmp_path / "model" / "generated" / "metadata.json").read_text())["stall_ratio"] == 0.4
     assert not (tmp_path / "model" / "metrics_rollout_sampled.json").exists()
+    assert not (tmp_path / "model" / "baselines.json").exists()  # SKIP_BASELINES=1
+    [(_, state_dir)] = list_checkpoints(tmp_path / "model")
+    groups = load_training_checkpoint(state_dir)["optimizer"]["param_groups"]
+    assert {g["initial_lr"] for g in groups} == {3e-3}  # the recipe's learning rate, not the main command's

@@ -137,6 +137,20 @@ def test_too_many_nonfinite_steps_stop_with_the_last_good_state_saved(data, tmp_
         assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_a_diverged_run_stops_without_saving_its_weights(data, tmp_path):
+    """A learning rate far too high sends the loss past twice a uniform guess's and keeps it there: the run stops
+    within --max_diverged_steps of it, names the last checkpoint, and leaves no final model."""
+    with pytest.raises(SystemExit, match=r"training diverged: the loss stayed above 16\.6 .* from step \d+ to step "
+                                         r"\d+ .*the last checkpoint is .*checkpoint-\d+"):
+        train.main(train_argv(data, tmp_path / "run", "--max_train_steps", "40", "--checkpointing_steps", "1",
+                              "--optimizer", "adamw", "--learning_rate", "0.1", "--max_diverged_steps", "4"))
+    steps = [step for step, _ in list_checkpoints(tmp_path / "run")]
+    assert steps and steps[-1] < 40 and not (tmp_path / "run" / "final_checkpt").exists()
+    # a healthy run never trips it, not even at a limit of one step
+    train.main(train_argv(data, tmp_path / "healthy", "--max_train_steps", "6", "--max_diverged_steps", "1"))
+    assert (tmp_path / "healthy" / "final_checkpt" / "model.safetensors").exists()
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
