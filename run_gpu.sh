@@ -2,7 +2,8 @@
 # The recipe for one CUDA GPU: a larger sample world and a larger model, evaluated exactly as run_sample.sh does.
 #   1. build GPU_DIR (default data/sample_gpu): EPISODES (default 16) walks per training map instead of 2, on the same
 #      maps with the same seed, so its validation split is byte for byte the default world's and every number
-#      compares with the CPU default's (rendering ~1 min, tokenizing on the GPU);
+#      compares with the CPU default's (rendered by WORKERS processes, default the CPU count up to 8: 108 s with
+#      two on an H200 box; tokenized on the GPU in seconds);
 #   2. ./run_sample.sh on it with genie/configs/gpu_world_actions.json (8 layers, d_model 256: 10 M parameters, the
 #      main command's model otherwise), STEPS (default 6000) steps of 32 windows at learning rate 3e-3 (LR; the
 #      main command's 1e-2 diverges at this size: on an H200 the loss left 6 near step 79 and passed 1e6 by step
@@ -27,7 +28,9 @@ if [ "${ALLOW_CPU:-0}" != 1 ] && ! "$PY" -c "import sys, torch; sys.exit(0 if to
 fi
 
 # shellcheck disable=SC2086  # BUILD_ARGS is a list of flags
-"$PY" -m magvit2.build_sample --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-16}" ${BUILD_ARGS:-}
+CPUS=$(nproc 2>/dev/null || echo 2)
+"$PY" -m magvit2.build_sample --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-16}" \
+  --workers "${WORKERS:-$(( CPUS < 8 ? CPUS : 8 ))}" ${BUILD_ARGS:-}
 
 export SAMPLE_DIR=$GPU_DIR OUT=${OUT:-data/genie_gpu} GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/gpu_world_actions.json}
 export EVAL_ARGS=${EVAL_ARGS-}

@@ -101,6 +101,9 @@ def parse_args(argv=None):
     p.add_argument("--train_tokenizer", action="store_true",
                    help="train the tokenizer here with the shipped recipe (into OUTPUT_DIR/tokenizer) instead of "
                         "using the shipped weights")
+    p.add_argument("--workers", type=int, default=2,
+                   help="processes rendering episodes in parallel (each runs one ViZDoom engine; the frames do not "
+                        "depend on it)")
     p.add_argument("--batch_size", type=int, default=256, help="frames per encoder batch when tokenizing")
     add_device_arg(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild every step even if outputs exist")
@@ -108,6 +111,8 @@ def parse_args(argv=None):
     for name in ("turn_speed", "walk_speed"):
         if not getattr(args, name) > 0:
             p.error(f"--{name} must be > 0, got {getattr(args, name)}")
+    if args.workers < 1:
+        p.error(f"--workers must be >= 1, got {args.workers}")
     return args
 
 
@@ -117,7 +122,7 @@ def main(argv=None):
     raw = out / "raw"
     build_sample_world(raw, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=1, episode_len=args.episode_len,
-                       overwrite=args.overwrite,
+                       workers=args.workers, overwrite=args.overwrite,
                        cfg=WorldConfig(turn_speed=args.turn_speed, walk_speed=args.walk_speed))
     if args.train_tokenizer:
         tokenizer_dir = train_tokenizer(raw, out / "tokenizer")

@@ -228,13 +228,13 @@ def test_other_walker_turns_by_its_turn_speed():
         sw.WorldConfig(walk_speed=-1.0)
 
 
-def test_build_sample_passes_turn_and_walk_speed(tmp_path, monkeypatch, capsys):
+def test_build_sample_passes_turn_and_walk_speed_and_workers(tmp_path, monkeypatch, capsys):
     from magvit2 import build_sample
 
     seen = {}
 
-    def fake_build(out_dir, cfg=None, **kwargs):
-        seen["cfg"] = cfg
+    def fake_build(out_dir, cfg=None, workers=None, **kwargs):
+        seen["cfg"], seen["workers"] = cfg, workers
         raise SystemExit(0)  # stop before tokenizing
 
     monkeypatch.setattr(build_sample, "build_sample_world", fake_build)
@@ -253,3 +253,10 @@ def test_build_sample_passes_turn_and_walk_speed(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit, match="2"):
         build_sample.main(["--output_dir", str(tmp_path), "--walk_speed", "0"])
     assert "--walk_speed must be > 0" in capsys.readouterr().err
+    assert seen["workers"] == 2  # the default
+    with pytest.raises(SystemExit):
+        build_sample.main(["--output_dir", str(tmp_path), "--workers", "8"])
+    assert seen["workers"] == 8
+    with pytest.raises(SystemExit, match="2"):
+        build_sample.main(["--output_dir", str(tmp_path), "--workers", "0"])
+    assert "--workers must be >= 1" in capsys.readouterr().err
