@@ -17,9 +17,9 @@
 # GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=), EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS
 # (extra evaluate.py flags of the three evaluations), SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout
 # evaluation), COPY_BIAS and GREEDY_TOKENS change the defaults below; SKIP_BASELINES=1 skips genie.baselines (the
-# data's copy and lookup baselines, the same for every model: slow on a large world, and known after one run). STALL_RATIO (off unless set) turns on
-# the stall rule for the futures (--stall_ratio: a future whose frame changes at most that fraction of what the
-# prompt's frames change holds that frame; docs/experiments.md measures 0.66 for the model without actions:
+# data's copy and lookup baselines, the same for every model: slow on a large world, and known after one run).
+# STALL_RATIO (off unless set) turns on the stall rule for the futures (--stall_ratio: a future whose frame changes
+# at most that fraction of what the prompt's frames change holds that frame; docs/experiments.md measures 0.66 for the model without actions:
 # GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS= STALL_RATIO=0.66 ./run_sample.sh). run_gpu.sh is
 # this job at a GPU's scale.
 # When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated

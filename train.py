@@ -427,19 +427,21 @@ class Trainer:
         return loss_sum
 
     def optimizer_step(self, loss: torch.Tensor, stop_requested: bool):
-        """Clip, check for NaN/inf (agreed on by all processes), step. Returns (grad_norm, finite, stop)."""
+        """Clip, check for NaN/inf and a diverged loss (agreed on by all processes), step.
+        Returns (grad_norm, finite, stop, diverged)."""
         max_norm = self.args.max_grad_norm if self.args.max_grad_norm > 0 else float("inf")
         grad_norm = self.accelerator.clip_grad_norm_(self.ddp_model.parameters(), max_norm)
         flags = torch.stack([(~torch.isfinite(loss)) | (~torch.isfinite(grad_norm)),
-                             torch.tensor(stop_requested, device=self.device)]).float()
+                             torch.tensor(stop_requested, device=self.device),
+                             loss > self.diverged_loss]).float()
         if self.world > 1:
             flags = self.accelerator.reduce(flags, reduction="sum")
-        finite, stop = bool(flags[0] == 0), bool(flags[1] > 0)
+        finite, stop, diverged = bool(flags[0] == 0), bool(flags[1] > 0), bool(flags[2] > 0)
         if finite:
             self.ddp_optimizer.step()
         self.ddp_optimizer.zero_grad(set_to_none=True)
         self.scheduler.step()  # the schedule follows the data position, skipped steps included
-        return grad_norm, finite, stop
+        return grad_norm, finite, stop, diverged
 
     def handle_nonfinite(self, finite: bool, loss: float) -> None:
         if finite:
@@ -455,9 +457,10 @@ class Trainer:
                 f"The weights of the last good step are saved in {checkpoint_dir(self.args.output_dir, self.step)} "
                 f"(lower --learning_rate, check the data, or resume from it to skip the bad batches)")
 
-    def handle_divergence(self, loss: float) -> None:
-        """Count the steps in a row whose loss is above twice a uniform guess's; too many stop the run."""
-        self.consecutive_diverged = self.consecutive_diverged + 1 if loss > self.diverged_loss else 0
+    def handle_divergence(self, diverged: bool, loss: float) -> None:
+        """Count the steps in a row whose loss is above twice a uniform guess's (on any process, so that all
+        processes stop together); too many stop the run."""
+        self.consecutive_diverged = self.consecutive_diverged + 1 if diverged else 0
         limit = self.args.max_diverged_steps
         if limit == 0 or self.consecutive_diverged < limit:
             return
@@ -530,12 +533,12 @@ class Trainer:
         micro_batches = [self.collate(next(batches), batch_seed(args.seed, self.rank, self.step, i))
                          for i in range(ga)]
         loss = self.forward_backward(micro_batches)
-        grad_norm, finite, stop = self.optimizer_step(loss, stop_signal.requested)
+        grad_norm, finite, stop, diverged = self.optimizer_step(loss, stop_signal.requested)
         self.step += 1
         loss_value = loss.item()
         self.handle_nonfinite(finite, loss_value)
         if finite:
-            self.handle_divergence(loss_value)
+            self.handle_divergence(diverged, loss_value)
         lr = self.scheduler.get_last_lr()[0]
         tokens_per_s = self.tokens_per_step / (time.perf_counter() - t0)
         bar.update(1)
