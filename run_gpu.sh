@@ -7,9 +7,9 @@
 #   2. ./run_sample.sh on it with genie/configs/gpu_world_actions.json (8 layers, d_model 256: 10 M parameters, the
 #      main command's model otherwise), STEPS (default 6000) steps of 32 windows at learning rate 3e-3 (LR; the
 #      main command's 1e-2 diverges at this size: on an H200 the loss left 6 near step 79 and passed 1e6 by step
-#      120, with or without actions, while 3e-3 kept falling), bf16 autocast and torch.compile (train.py's
-#      defaults on CUDA), then every evaluation of the main command, teacher-forced on all validation windows,
-#      and on data/unseen too when ./build.sh --unseen made it.
+#      120, with or without actions, while 3e-3 kept falling), run_sample.sh's weight decay (WEIGHT_DECAY, 0.4),
+#      bf16 autocast and torch.compile (train.py's defaults on CUDA), then every evaluation of the main command,
+#      teacher-forced on all validation windows, and on data/unseen too when ./build.sh --unseen made it.
 # The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO
 # as in run_sample.sh)
 # Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply

@@ -3,7 +3,7 @@
 #   1. train a small action-conditioned GENIE on data/sample/train -> data/genie_model/final_checkpt
 #      (genie/configs/sample_world_actions.json: the previous-frame pointer at radius 4, conditioned on the walker's
 #      buttons and driving command averaged over each window step; Muon for the transformer's matrices, AdamW for
-#      the rest: common/muon.py)
+#      the rest: common/muon.py; weight decay 0.4, WEIGHT_DECAY)
 #   2. generate from held-out prompts of data/sample/val, playing their recorded actions
 #      -> data/genie_model/generated (tokens)
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
@@ -16,8 +16,9 @@
 # GENERATE_ARGS (extra generate.py flags; set it empty for a GENIE_CONFIG without actions, e.g.
 # GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=), EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS
 # (extra evaluate.py flags of the three evaluations), SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout
-# evaluation), COPY_BIAS and GREEDY_TOKENS change the defaults below; SKIP_BASELINES=1 skips genie.baselines (the
-# data's copy and lookup baselines, the same for every model: slow on a large world, and known after one run).
+# evaluation), COPY_BIAS, GREEDY_TOKENS and WEIGHT_DECAY (train.py's, default 0.4) change the defaults below;
+# SKIP_BASELINES=1 skips genie.baselines (the data's copy and lookup baselines, the same for every model: slow on a
+# large world, and known after one run).
 # STALL_RATIO (off unless set) turns on the stall rule for the futures (--stall_ratio: a future whose frame changes
 # at most that fraction of what the prompt's frames change holds that frame; docs/experiments.md measures 0.66 for the model without actions:
 # GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS= STALL_RATIO=0.66 ./run_sample.sh). run_gpu.sh is
@@ -44,7 +45,7 @@ DECODE_ARGS+="${STALL_RATIO:+ --stall_ratio $STALL_RATIO}"
 
 "$PY" train.py --genie_config "$GENIE_CONFIG" --train_data_dir "$TRAIN" --val_data_dir "$VAL" \
   --output_dir "$OUT" --per_device_train_batch_size 2 --optimizer muon --learning_rate 1e-2 --lr_scheduler_type cosine \
-  --num_warmup_steps 120 --max_train_steps 1600 --weight_decay 0.05 --eval_every_n_steps 800 --max_eval_steps 16 \
+  --num_warmup_steps 120 --max_train_steps 1600 --weight_decay "${WEIGHT_DECAY:-0.4}" --eval_every_n_steps 800 --max_eval_steps 16 \
   --checkpointing_steps 800 --resume_from_checkpoint latest "$@"
 
 "$PY" genie/generate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --output_dir "$OUT/generated" \

@@ -77,6 +77,9 @@ def test_main_job_pipeline_tiny(tmp_path):
     unseen = json.loads((out / "metrics_unseen.json").read_text())
     assert unseen["num_examples"] == 1 and unseen["copy_acc"] == metrics["copy_acc"]  # same val split here
     assert json.loads((out / "metrics_rollout_unseen.json").read_text())["protocol"] == "rollout"
+    [(_, state_dir)] = list_checkpoints(out)
+    decays = {g["weight_decay"] for g in load_training_checkpoint(state_dir)["optimizer"]["param_groups"]}
+    assert decays == {0.0, 0.4}  # the main command's decay on matrices and embeddings, none on biases and norms
 
 
 def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
@@ -96,7 +99,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
                BUILD_ARGS=f"--train_maps MAP01 --val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
                LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SAMPLED_ROLLOUT_ARGS="",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
-               UNSEEN_DIR=str(tmp_path / "none"), STALL_RATIO="0.4", SKIP_BASELINES="1")
+               UNSEEN_DIR=str(tmp_path / "none"), STALL_RATIO="0.4", SKIP_BASELINES="1", WEIGHT_DECAY="0.1")
     subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True,
                    timeout=600)
@@ -115,3 +118,4 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     [(_, state_dir)] = list_checkpoints(tmp_path / "model")
     groups = load_training_checkpoint(state_dir)["optimizer"]["param_groups"]
     assert {g["initial_lr"] for g in groups} == {3e-3}  # the recipe's learning rate, not the main command's
+    assert {g["weight_decay"] for g in groups} == {0.0, 0.1}  # WEIGHT_DECAY reaches train.py through run_sample.sh
