@@ -23,6 +23,12 @@ def tiny_tokenizer(path: Path) -> Path:
     return path
 
 
+def saved_param_groups(output_dir: Path) -> list:
+    """The optimizer's param groups in the run's one training checkpoint (what train.py was actually given)."""
+    [(_, state_dir)] = list_checkpoints(output_dir)
+    return load_training_checkpoint(state_dir)["optimizer"]["param_groups"]
+
+
 def test_main_job_pipeline_tiny(tmp_path):
     tokenizer = tiny_tokenizer(tmp_path / "tokenizer")
     sample = tmp_path / "sample"
@@ -77,8 +83,7 @@ def test_main_job_pipeline_tiny(tmp_path):
     unseen = json.loads((out / "metrics_unseen.json").read_text())
     assert unseen["num_examples"] == 1 and unseen["copy_acc"] == metrics["copy_acc"]  # same val split here
     assert json.loads((out / "metrics_rollout_unseen.json").read_text())["protocol"] == "rollout"
-    [(_, state_dir)] = list_checkpoints(out)
-    decays = {g["weight_decay"] for g in load_training_checkpoint(state_dir)["optimizer"]["param_groups"]}
+    decays = {g["weight_decay"] for g in saved_param_groups(out)}
     assert decays == {0.0, 0.4}  # the main command's decay on matrices and embeddings, none on biases and norms
 
 
@@ -115,7 +120,6 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     assert json.loads((tmp_path / "model" / "generated" / "metadata.json").read_text())["stall_ratio"] == 0.4
     assert not (tmp_path / "model" / "metrics_rollout_sampled.json").exists()
     assert not (tmp_path / "model" / "baselines.json").exists()  # SKIP_BASELINES=1
-    [(_, state_dir)] = list_checkpoints(tmp_path / "model")
-    groups = load_training_checkpoint(state_dir)["optimizer"]["param_groups"]
+    groups = saved_param_groups(tmp_path / "model")
     assert {g["initial_lr"] for g in groups} == {3e-3}  # the recipe's learning rate, not the main command's
     assert {g["weight_decay"] for g in groups} == {0.0, 0.1}  # WEIGHT_DECAY reaches train.py through run_sample.sh
