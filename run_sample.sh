@@ -3,7 +3,7 @@
 #   1. train a small action-conditioned GENIE on data/sample/train -> data/genie_model/final_checkpt
 #      (genie/configs/sample_world_actions.json: the previous-frame pointer at radius 4, conditioned on the walker's
 #      buttons and driving command averaged over each window step; Muon for the transformer's matrices, AdamW for
-#      the rest: common/muon.py; weight decay 0.4, WEIGHT_DECAY)
+#      the rest: common/muon.py; learning rate 1e-2 decaying linearly to zero; weight decay 0.4, WEIGHT_DECAY)
 #   2. generate from held-out prompts of data/sample/val, playing their recorded actions
 #      -> data/genie_model/generated (tokens)
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
@@ -44,7 +44,7 @@ DECODE_ARGS+="${STALL_RATIO:+ --stall_ratio $STALL_RATIO}"
 [ -f "$TRAIN/metadata.json" ] || { echo "run_sample.sh: $TRAIN is missing; run ./build.sh first" >&2; exit 1; }
 
 "$PY" train.py --genie_config "$GENIE_CONFIG" --train_data_dir "$TRAIN" --val_data_dir "$VAL" \
-  --output_dir "$OUT" --per_device_train_batch_size 2 --optimizer muon --learning_rate 1e-2 --lr_scheduler_type cosine \
+  --output_dir "$OUT" --per_device_train_batch_size 2 --optimizer muon --learning_rate 1e-2 --lr_scheduler_type linear \
   --num_warmup_steps 120 --max_train_steps 1600 --weight_decay "${WEIGHT_DECAY:-0.4}" --eval_every_n_steps 800 --max_eval_steps 16 \
   --checkpointing_steps 800 --resume_from_checkpoint latest "$@"
 

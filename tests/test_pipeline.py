@@ -23,10 +23,10 @@ def tiny_tokenizer(path: Path) -> Path:
     return path
 
 
-def saved_param_groups(output_dir: Path) -> list:
-    """The optimizer's param groups in the run's one training checkpoint (what train.py was actually given)."""
+def saved_training_state(output_dir: Path) -> dict:
+    """The run's one training checkpoint: the optimizer's groups and the trainer's arguments (what train.py got)."""
     [(_, state_dir)] = list_checkpoints(output_dir)
-    return load_training_checkpoint(state_dir)["optimizer"]["param_groups"]
+    return load_training_checkpoint(state_dir)
 
 
 def test_main_job_pipeline_tiny(tmp_path):
@@ -83,8 +83,10 @@ def test_main_job_pipeline_tiny(tmp_path):
     unseen = json.loads((out / "metrics_unseen.json").read_text())
     assert unseen["num_examples"] == 1 and unseen["copy_acc"] == metrics["copy_acc"]  # same val split here
     assert json.loads((out / "metrics_rollout_unseen.json").read_text())["protocol"] == "rollout"
-    decays = {g["weight_decay"] for g in saved_param_groups(out)}
+    state = saved_training_state(out)
+    decays = {g["weight_decay"] for g in state["optimizer"]["param_groups"]}
     assert decays == {0.0, 0.4}  # the main command's decay on matrices and embeddings, none on biases and norms
+    assert state["trainer"]["args"]["lr_scheduler_type"] == "linear"
 
 
 def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
@@ -120,6 +122,6 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     assert json.loads((tmp_path / "model" / "generated" / "metadata.json").read_text())["stall_ratio"] == 0.4
     assert not (tmp_path / "model" / "metrics_rollout_sampled.json").exists()
     assert not (tmp_path / "model" / "baselines.json").exists()  # SKIP_BASELINES=1
-    groups = saved_param_groups(tmp_path / "model")
+    groups = saved_training_state(tmp_path / "model")["optimizer"]["param_groups"]
     assert {g["initial_lr"] for g in groups} == {3e-3}  # the recipe's learning rate, not the main command's
     assert {g["weight_decay"] for g in groups} == {0.0, 0.1}  # WEIGHT_DECAY reaches train.py through run_sample.sh
