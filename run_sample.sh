@@ -22,7 +22,8 @@
 # STALL_RATIO (off unless set) turns on the stall rule for the futures (--stall_ratio: a future whose frame changes
 # at most that fraction of what the prompt's frames change holds that frame; docs/experiments.md measures 0.66 for
 # the model without actions: GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS= WEIGHT_DECAY=0.05
-# STALL_RATIO=0.66 ./run_sample.sh, the weight decay it was measured with). run_gpu.sh is this job at a GPU's scale.
+# STALL_RATIO=0.66 ./run_sample.sh --lr_scheduler_type cosine, the weight decay and schedule it was measured with).
+# run_gpu.sh is this job at a GPU's scale.
 # When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated
 # there (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json, metrics_rollout_sampled_unseen.json.
 set -euo pipefail
