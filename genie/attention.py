@@ -15,6 +15,8 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
 
+from genie.rope import apply_rope
+
 
 def attention_scale(head_dim: int, use_mup: bool) -> float:
     """Softmax scale: head_dim^-0.5, or 8 / head_dim under muP (equal at head_dim 64)."""
@@ -97,8 +99,12 @@ class SelfAttention(nn.Module):
         probs = F.dropout(scores.softmax(dim=-1), p=dropout_p) if dropout_p else scores.softmax(dim=-1)
         return probs.to(v.dtype) @ v
 
-    def forward(self, x_BNC: torch.Tensor, causal: bool = False) -> torch.Tensor:
+    def forward(self, x_BNC: torch.Tensor, causal: bool = False,
+                rope: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> torch.Tensor:
+        """(B, N, C) -> (B, N, C); rope: optional (cos, sin) tables (N, head_dim) that rotate q and k (genie/rope.py)."""
         q, k, v = self.project_qkv(x_BNC)
+        if rope is not None:
+            q, k = apply_rope(q, *rope), apply_rope(k, *rope)
         return self.attend(q, k, v, is_causal=causal)
 
     def attend_targets(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, context_k: torch.Tensor,

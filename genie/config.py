@@ -64,6 +64,8 @@ class GenieConfig:
     # With the pointer: each token's input also gets + embed(which of those neighbours in its previous frame hold the
     # same token), so the model sees how the scene moved at every position (motion evidence for the pointer).
     copy_match_input: bool = False
+    # 2-D rotary positions in the spatial attention (genie/rope.py): scores depend on the tokens' relative offset.
+    spatial_rope: bool = False
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -84,6 +86,9 @@ class GenieConfig:
         if not 1 <= self.num_prompt_frames < self.T:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         self._check_actions()
+        if self.spatial_rope and (self.d_model // self.num_heads) % 4:
+            raise ConfigError(f"GenieConfig: spatial_rope needs a head width (d_model / num_heads = "
+                              f"{self.d_model // self.num_heads}) divisible by 4")
         if self.copy_radius is not None and not 0 <= self.copy_radius < self.H:
             raise ConfigError(f"GenieConfig: copy_radius must be None (off) or in [0, {self.H}), "
                               f"got {self.copy_radius}")

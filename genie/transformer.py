@@ -1,7 +1,8 @@
 """Spatio-temporal transformer (Genie, arXiv 2402.15391, figure 4) with the published block semantics.
 
-Each block: spatial attention over the S tokens of a frame (pre-norm `norm1`), causal temporal attention over
-the frames at each spatial position (no norm before it, as published), then an MLP (pre-norm `norm2`).
+Each block: spatial attention over the S tokens of a frame (pre-norm `norm1`; opt-in 2-D rotary positions,
+genie/rope.py), causal temporal attention over the frames at each spatial position (no norm before it, as
+published), then an MLP (pre-norm `norm2`).
 
 Frame t depends only on frames <= t, so inference keeps each layer's temporal keys/values of known frames in a
 `TemporalKVCache` and runs only the frames it needs; `TemporalMode` says how the frames of a pass relate to the
@@ -18,6 +19,7 @@ from torch.utils.checkpoint import checkpoint
 from genie.attention import SelfAttention
 from genie.config import GenieConfig
 from genie.kv_cache import TemporalKVCache
+from genie.rope import rope_tables
 
 
 class TemporalMode(enum.Enum):
@@ -62,6 +64,11 @@ class STBlock(nn.Module):
         self.temporal_attn = SelfAttention(**attn_kwargs)
         self.norm2 = nn.Identity() if config.qk_norm else nn.LayerNorm(config.d_model, eps=1e-5)
         self.mlp = Mlp(config.d_model, config.mlp_ratio, config.mlp_bias, config.mlp_drop)
+        self.rope = config.spatial_rope
+        if self.rope:  # not saved: the weights' layout is the same with or without
+            cos_SD, sin_SD = rope_tables(config.H, config.W, config.d_model // config.num_heads)
+            self.register_buffer("rope_cos_SD", cos_SD, persistent=False)
+            self.register_buffer("rope_sin_SD", sin_SD, persistent=False)
 
     def forward(self, x_BTSC: torch.Tensor, mode: TemporalMode = TemporalMode.CAUSAL,
                 kv_cache: Optional[TemporalKVCache] = None, layer: int = 0,
@@ -70,7 +77,8 @@ class STBlock(nn.Module):
         temporal keys/values are written into the cache and None is returned."""
         B, T, S, C = x_BTSC.shape
         x_NSC = x_BTSC.reshape(B * T, S, C)
-        x_NSC = x_NSC + self.spatial_attn(self.norm1(x_NSC))
+        rope = (self.rope_cos_SD, self.rope_sin_SD) if self.rope else None
+        x_NSC = x_NSC + self.spatial_attn(self.norm1(x_NSC), rope=rope)
 
         x_MTC = rearrange(x_NSC, "(B T) S C -> (B S) T C", B=B)
         if kv_only:
