@@ -8,10 +8,10 @@ from genie.reference import generate_uncached, teacher_forced_uncached
 from genie.transformer import TemporalMode
 
 
-def make_model(qk_norm: bool, seed: int = 0) -> STMaskGIT:
+def make_model(qk_norm: bool, seed: int = 0, **config_overrides) -> STMaskGIT:
     torch.manual_seed(seed)
     config = GenieConfig(num_layers=2, num_heads=4, d_model=32, T=6, S=16, image_vocab_size=64 ** 2,
-                         num_prompt_frames=2, qk_norm=qk_norm)
+                         num_prompt_frames=2, qk_norm=qk_norm, **config_overrides)
     model = STMaskGIT(config)
     model.init_weights()
     with torch.no_grad():  # larger than the init so that logits differ clearly between positions and frames

@@ -7,6 +7,7 @@ from genie.config import ConfigError
 from genie.inference import generate
 from genie.reference import generate_uncached
 from genie.rope import apply_rope, rope_tables
+from tests.test_cache import make_model
 
 
 def test_scores_depend_only_on_the_relative_offset():
@@ -34,18 +35,7 @@ def test_scores_depend_only_on_the_relative_offset():
 
 
 def rope_model(spatial_rope: bool) -> STMaskGIT:
-    torch.manual_seed(0)
-    config = GenieConfig(num_layers=2, num_heads=2, d_model=32, T=6, S=16, image_vocab_size=64 ** 2,
-                         num_prompt_frames=2, qk_norm=True, spatial_rope=spatial_rope)
-    model = STMaskGIT(config)
-    model.init_weights()
-    with torch.no_grad():  # large weights, so that positions change the logits clearly
-        for module in model.modules():
-            if isinstance(module, torch.nn.Linear):
-                module.weight.normal_(0, module.in_features ** -0.5)
-        for embed in model.token_embed.factored_embeds:
-            embed.weight.normal_(0, 1.0)
-    return model.eval()
+    return make_model(qk_norm=True, spatial_rope=spatial_rope)
 
 
 def test_rope_keeps_the_weights_layout_and_changes_the_logits():
