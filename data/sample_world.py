@@ -491,6 +491,28 @@ def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int,
     }
 
 
+def mirror_split(data: dict) -> dict:
+    """The split as seen in a mirror: every frame flipped left-right, with the actions that make the flipped walk.
+
+    A mirror image of a first-person view is the view of the mirrored map from the mirrored pose (the map reflected
+    across its x axis: (x, y, heading) -> (x, -y, -heading)), so turning left becomes turning right: TURN_LEFT and
+    TURN_RIGHT swap, the angular velocity changes sign, and moving forward or back stays as it was. Lighting and
+    geometry are unchanged by the reflection, so a mirrored walk is a walk the engine could have rendered (only
+    the textures read backwards). The frames stay a view of `data`'s (np.save writes it in chunks), every other
+    array is new; the episode order and segment ids are kept.
+    """
+    left, right = BUTTON_NAMES.index("TURN_LEFT"), BUTTON_NAMES.index("TURN_RIGHT")
+    buttons = np.array(data["actions_buttons"], dtype=np.float32)
+    buttons[:, [left, right]] = buttons[:, [right, left]]
+    return {
+        **data,
+        "frames": data["frames"][:, :, ::-1],
+        "actions_buttons": buttons,
+        "actions_driving_command": np.asarray(data["actions_driving_command"], np.float32) * np.float32([1, -1]),
+        "poses": np.asarray(data["poses"], np.float32) * np.float32([1, -1, -1]),
+    }
+
+
 def _atomic_write(path: Path, write):
     """Call write(file object) on a temp file next to `path`, then rename it into place."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -17,8 +17,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from common.cli import add_device_arg, add_hidden_alias, resolve_device
-from data.sample_world import HELDOUT_MAPS, TRAIN_MAPS, WorldConfig, build_sample_world
+from data.sample_world import HELDOUT_MAPS, TRAIN_MAPS, WorldConfig, build_sample_world, mirror_split, save_split
 from magvit2.model import VQModel
 from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 
@@ -54,24 +56,40 @@ def resolve_tokenizer(path: str) -> Path:
     return p
 
 
-def split_stamp(raw_npz: Path, tokenizer_dir: Path) -> dict:
-    """What a token dataset was built from: the raw frames (path, mtime) and the tokenizer weights (content hash,
-    so a fresh checkout of the same weights is recognised while new weights are not)."""
+def split_stamp(raw_npzs: list, tokenizer_dir: Path) -> dict:
+    """What a token dataset was built from: the raw frames (path, mtime; a second file is the mirrored copy) and the
+    tokenizer weights (content hash, so a fresh checkout of the same weights is recognised while new weights are
+    not)."""
     digest = hashlib.sha256((tokenizer_dir / "model.safetensors").read_bytes()).hexdigest()
-    return {"raw": str(raw_npz), "raw_mtime": raw_npz.stat().st_mtime, "tokenizer_sha256": digest}
+    first, *more = raw_npzs
+    stamp = {"raw": str(first), "raw_mtime": first.stat().st_mtime, "tokenizer_sha256": digest}
+    if more:
+        stamp["more_raw"] = [[str(p), p.stat().st_mtime] for p in more]
+    return stamp
 
 
-def tokenize_split(raw_npz: Path, out_dir: Path, tokenizer_dir: Path, tokenizer_ref: str, batch_size: int,
+def write_mirror(raw_npz: Path, mirror_npz: Path, overwrite: bool) -> None:
+    """raw_npz's walks mirrored left-right (data.sample_world.mirror_split) -> mirror_npz, unless it is newer."""
+    if not overwrite and mirror_npz.exists() and mirror_npz.stat().st_mtime >= raw_npz.stat().st_mtime:
+        print(f"{mirror_npz}: mirrored walks up to date; skipping")
+        return
+    with np.load(raw_npz, allow_pickle=False) as npz:
+        save_split(mirror_npz, mirror_split({key: npz[key] for key in npz.files}))
+    print(f"{mirror_npz}: the training walks mirrored")
+
+
+def tokenize_split(raw_npzs: list, out_dir: Path, tokenizer_dir: Path, tokenizer_ref: str, batch_size: int,
                    device, overwrite: bool) -> None:
-    """Encode one split's npz into a token dataset, unless an up-to-date one is already there."""
-    stamp = split_stamp(raw_npz, tokenizer_dir)
+    """Encode one split's npz files (in order, as one dataset) into a token dataset, unless an up-to-date one is
+    already there."""
+    stamp = split_stamp(raw_npzs, tokenizer_dir)
     stamp_path = out_dir / "build_stamp.json"
     if not overwrite and stamp_path.exists() and json.loads(stamp_path.read_text()) == stamp:
         print(f"{out_dir}: token dataset up to date; skipping")
         return
     model = VQModel.from_checkpoint(tokenizer_dir).to(device).eval()
     t0 = time.time()
-    tokenize_episodes(model, describe_inputs([raw_npz]), out_dir, tokenizer_ckpt=tokenizer_ref,
+    tokenize_episodes(model, describe_inputs(raw_npzs), out_dir, tokenizer_ckpt=tokenizer_ref,
                       batch_size=batch_size, overwrite=True)
     stamp_path.write_text(json.dumps(stamp, indent=2))
     print(f"{out_dir}: tokenized in {time.time() - t0:.1f}s")
@@ -104,6 +122,10 @@ def parse_args(argv=None):
     p.add_argument("--workers", type=int, default=2,
                    help="processes rendering episodes in parallel (each runs one ViZDoom engine; the frames do not "
                         "depend on it)")
+    p.add_argument("--mirror", action="store_true",
+                   help="also train on every training walk seen in a mirror (frames flipped left-right, left and "
+                        "right turns swapped): twice the training frames from the same renders (raw/train_mirror.npz); "
+                        "the validation split is unchanged; at the main command's budget it did not improve the futures")
     p.add_argument("--batch_size", type=int, default=256, help="frames per encoder batch when tokenizing")
     add_device_arg(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild every step even if outputs exist")
@@ -130,8 +152,12 @@ def main(argv=None):
     else:
         tokenizer_dir = resolve_tokenizer(args.tokenizer_ckpt)
         tokenizer_ref = args.tokenizer_ckpt
+    inputs = {"train": [raw / "train.npz"], "val": [raw / "val.npz"]}
+    if args.mirror:
+        write_mirror(raw / "train.npz", raw / "train_mirror.npz", args.overwrite)
+        inputs["train"].append(raw / "train_mirror.npz")
     for split in ("train", "val"):
-        tokenize_split(raw / f"{split}.npz", out / split, tokenizer_dir, tokenizer_ref, args.batch_size,
+        tokenize_split(inputs[split], out / split, tokenizer_dir, tokenizer_ref, args.batch_size,
                        resolve_device(args.device), args.overwrite)
 
 

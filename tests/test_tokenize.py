@@ -97,3 +97,48 @@ def test_tokenize_frames_in_memory(tmp_path, tokenizer_dir):
     ds = RawTokenDataset(out, window_size=2)
     assert np.array_equal(np.asarray(ds.data), model.images_to_tokens(video))
     assert len(ds) == 1 + 2 and ds.metadata["hz"] == 15 and ds.metadata["tokenizer_ckpt"] == "my_tok"
+
+
+def test_build_sample_mirror_adds_the_flipped_walks_after_the_rendered_ones(tmp_path, tokenizer_dir, capsys):
+    """build_sample --mirror: the training split is the rendered walks, then the same walks mirrored, each frame's
+    tokens those of the flipped frame, with the turns swapped; a second build is a no-op, a build without the
+    mirror re-tokenizes."""
+    from data.sample_world import BUTTON_NAMES
+    from magvit2.build_sample import tokenize_split, write_mirror
+
+    n = 6
+    buttons = np.zeros((n, len(BUTTON_NAMES)), np.float32)
+    buttons[:3, BUTTON_NAMES.index("TURN_LEFT")] = 1
+    raw = tmp_path / "train.npz"
+    np.savez(raw, frames=frames(n, 3), segment_ids=np.array([0, 0, 0, 1, 1, 1], np.int32), actions_buttons=buttons,
+             actions_driving_command=np.tile(np.float32([[60.0, 0.5]]), (n, 1)), poses=np.zeros((n, 3), np.float32),
+             hz=np.int32(35))
+    mirror = tmp_path / "train_mirror.npz"
+    write_mirror(raw, mirror, overwrite=False)
+    out = tmp_path / "train"
+    tokenize_split([raw, mirror], out, tokenizer_dir, "tiny", batch_size=4, device="cpu", overwrite=False)
+
+    ds = RawTokenDataset(out, window_size=1, stride=1)
+    assert ds.metadata["num_images"] == 2 * n
+    segments = np.fromfile(out / "segment_ids.bin", dtype=np.int32)
+    assert segments.tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3]  # mirrored walks are walks of their own
+    model = VQModel.from_checkpoint(tokenizer_dir).eval()
+    video = np.fromfile(out / "video.bin", dtype=np.uint32).reshape(2 * n, -1)
+    with np.load(raw) as npz:
+        expected = model.images_to_tokens(np.ascontiguousarray(npz["frames"][:, :, ::-1]), batch_size=4)
+        straight = model.images_to_tokens(npz["frames"], batch_size=4)
+    np.testing.assert_array_equal(video[n:], np.asarray(expected).reshape(n, -1))
+    assert not np.array_equal(video[:n], video[n:])
+    np.testing.assert_array_equal(video[:n], np.asarray(straight).reshape(n, -1))
+    turns = np.fromfile(out / "actions" / "buttons.bin", dtype=np.float32).reshape(2 * n, -1)
+    assert turns[n:n + 3, BUTTON_NAMES.index("TURN_RIGHT")].tolist() == [1, 1, 1]
+    assert turns[n:, BUTTON_NAMES.index("TURN_LEFT")].sum() == 0
+    angular = np.fromfile(out / "actions" / "driving_command.bin", dtype=np.float32).reshape(2 * n, 2)[:, 1]
+    assert angular[:n].tolist() == [0.5] * n and angular[n:].tolist() == [-0.5] * n
+
+    capsys.readouterr()
+    write_mirror(raw, mirror, overwrite=False)
+    tokenize_split([raw, mirror], out, tokenizer_dir, "tiny", batch_size=4, device="cpu", overwrite=False)
+    assert capsys.readouterr().out.count("up to date") == 2
+    tokenize_split([raw], out, tokenizer_dir, "tiny", batch_size=4, device="cpu", overwrite=False)
+    assert RawTokenDataset(out, window_size=1, stride=1).metadata["num_images"] == n
