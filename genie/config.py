@@ -66,6 +66,9 @@ class GenieConfig:
     copy_match_input: bool = False
     # 2-D rotary positions in the spatial attention (genie/rope.py): scores depend on the tokens' relative offset.
     spatial_rope: bool = False
+    # Rotary positions in the temporal attention too (genie/rope.py): half of each head's channels turned by the
+    # frame index, so a query scores a key by how many frames back it lies, whatever its own frame.
+    temporal_rope: bool = False
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -86,9 +89,10 @@ class GenieConfig:
         if not 1 <= self.num_prompt_frames < self.T:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         self._check_actions()
-        if self.spatial_rope and (self.d_model // self.num_heads) % 4:
-            raise ConfigError(f"GenieConfig: spatial_rope needs a head width (d_model / num_heads = "
-                              f"{self.d_model // self.num_heads}) divisible by 4")
+        for name in ("spatial_rope", "temporal_rope"):
+            if getattr(self, name) and (self.d_model // self.num_heads) % 4:
+                raise ConfigError(f"GenieConfig: {name} needs a head width (d_model / num_heads = "
+                                  f"{self.d_model // self.num_heads}) divisible by 4")
         if self.copy_radius is not None and not 0 <= self.copy_radius < self.H:
             raise ConfigError(f"GenieConfig: copy_radius must be None (off) or in [0, {self.H}), "
                               f"got {self.copy_radius}")

@@ -148,7 +148,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             x_BTSC = x_BTSC + self.copy_head.match_embedding(x_BTHW, sources_BTSK).to(x_BTSC.dtype)
         if cond_BTC is not None:
             x_BTSC = x_BTSC + cond_BTC.unsqueeze(2).to(x_BTSC.dtype)
-        return self.decoder(x_BTSC, mode, kv_cache)
+        return self.decoder(x_BTSC, mode, kv_cache, first_frame)
 
     def copy_sources(self, prev_BTHW: torch.Tensor) -> Optional[torch.Tensor]:
         """Tokens of the frame before each frame (B, T, H, W) (mask_token_id where unknown) -> what the copy head

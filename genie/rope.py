@@ -1,11 +1,13 @@
-"""Two-dimensional rotary positions (RoPE) for the spatial attention: opt-in, `GenieConfig.spatial_rope`.
+"""Rotary positions (RoPE): two-dimensional in the spatial attention (opt-in, `GenieConfig.spatial_rope`), and by
+frame index in the temporal attention (`GenieConfig.temporal_rope`: the same tables for a T x 1 grid).
 
 Each head's query and key channels are split in two: the first half is rotated by the token's row, the second by
 its column, each half as standard RoPE (channel pairs i and i + n/2 turned by position * base^(-2i/n), n channels per
 axis). The score of a query at (r, c) with a key at (r', c') then depends on the two positions only through
 (r - r', c - c'), so a relation learned in one part of the frame (the neighbour a turning camera brings in from the
 left) holds in every part. The absolute position embeddings stay; the tables are buffers that are not saved, so a
-checkpoint's weights are the same with or without it.
+checkpoint's weights are the same with or without it. In time the column half of the channels never turns (every
+frame is column 0), so the temporal attention keeps half of each head free of positions.
 """
 from typing import Tuple
 

@@ -2,7 +2,7 @@
 
 Each block: spatial attention over the S tokens of a frame (pre-norm `norm1`; opt-in 2-D rotary positions,
 genie/rope.py), causal temporal attention over the frames at each spatial position (no norm before it, as
-published), then an MLP (pre-norm `norm2`).
+published; opt-in rotary positions by frame index), then an MLP (pre-norm `norm2`).
 
 Frame t depends only on frames <= t, so inference keeps each layer's temporal keys/values of known frames in a
 `TemporalKVCache` and runs only the frames it needs; `TemporalMode` says how the frames of a pass relate to the
@@ -19,7 +19,7 @@ from torch.utils.checkpoint import checkpoint
 from genie.attention import SelfAttention
 from genie.config import GenieConfig
 from genie.kv_cache import TemporalKVCache
-from genie.rope import rope_tables
+from genie.rope import apply_rope, rope_tables
 
 
 class TemporalMode(enum.Enum):
@@ -65,16 +65,22 @@ class STBlock(nn.Module):
         self.norm2 = nn.Identity() if config.qk_norm else nn.LayerNorm(config.d_model, eps=1e-5)
         self.mlp = Mlp(config.d_model, config.mlp_ratio, config.mlp_bias, config.mlp_drop)
         self.rope = config.spatial_rope
+        head_dim = config.d_model // config.num_heads
         if self.rope:  # not saved: the weights' layout is the same with or without
-            cos_SD, sin_SD = rope_tables(config.H, config.W, config.d_model // config.num_heads)
+            cos_SD, sin_SD = rope_tables(config.H, config.W, head_dim)
             self.register_buffer("rope_cos_SD", cos_SD, persistent=False)
             self.register_buffer("rope_sin_SD", sin_SD, persistent=False)
+        self.temporal_rope = config.temporal_rope
+        if self.temporal_rope:  # a T x 1 grid: the first half of the channels turns with the frame, the rest stay
+            cos_TD, sin_TD = rope_tables(config.T, 1, head_dim)
+            self.register_buffer("rope_cos_TD", cos_TD, persistent=False)
+            self.register_buffer("rope_sin_TD", sin_TD, persistent=False)
 
     def forward(self, x_BTSC: torch.Tensor, mode: TemporalMode = TemporalMode.CAUSAL,
                 kv_cache: Optional[TemporalKVCache] = None, layer: int = 0,
-                kv_only: bool = False) -> Optional[torch.Tensor]:
-        """x (B, T, S, C) -> (B, T, S, C); with kv_only (the last layer of a PREFILL pass) only this layer's
-        temporal keys/values are written into the cache and None is returned."""
+                kv_only: bool = False, first_frame: int = 0) -> Optional[torch.Tensor]:
+        """x (B, T, S, C) of frames first_frame.. -> (B, T, S, C); with kv_only (the last layer of a PREFILL pass)
+        only this layer's temporal keys/values are written into the cache and None is returned."""
         B, T, S, C = x_BTSC.shape
         x_NSC = x_BTSC.reshape(B * T, S, C)
         rope = (self.rope_cos_SD, self.rope_sin_SD) if self.rope else None
@@ -82,15 +88,25 @@ class STBlock(nn.Module):
 
         x_MTC = rearrange(x_NSC, "(B T) S C -> (B S) T C", B=B)
         if kv_only:
-            kv_cache.extend(layer, *self.temporal_attn.project_kv(x_MTC))
+            k, v = self.temporal_attn.project_kv(x_MTC)
+            kv_cache.extend(layer, self.rotate_in_time(k, first_frame), v)
             return None
-        x_MTC = x_MTC + self.temporal(x_MTC, mode, kv_cache, layer)
+        x_MTC = x_MTC + self.temporal(x_MTC, mode, kv_cache, layer, first_frame)
         x_MTC = x_MTC + self.mlp(self.norm2(x_MTC))
         return rearrange(x_MTC, "(B S) T C -> B T S C", B=B)
 
+    def rotate_in_time(self, x_MhTd: torch.Tensor, first_frame: int) -> torch.Tensor:
+        """Queries or keys (B*S, heads, T, head_dim) of frames first_frame.. turned by their frame index (with
+        temporal_rope; unchanged otherwise). Cached keys are stored turned, so each is turned once, by its own frame."""
+        if not self.temporal_rope:
+            return x_MhTd
+        frames = slice(first_frame, first_frame + x_MhTd.shape[2])
+        return apply_rope(x_MhTd, self.rope_cos_TD[frames], self.rope_sin_TD[frames])
+
     def temporal(self, x_MTC: torch.Tensor, mode: TemporalMode, kv_cache: Optional[TemporalKVCache],
-                 layer: int) -> torch.Tensor:
+                 layer: int, first_frame: int = 0) -> torch.Tensor:
         q, k, v = self.temporal_attn.project_qkv(x_MTC)
+        q, k = self.rotate_in_time(q, first_frame), self.rotate_in_time(k, first_frame)
         if mode is TemporalMode.TARGETS:
             return self.temporal_attn.attend_targets(q, k, v, *kv_cache.cached(layer))
         if mode is TemporalMode.CAUSAL or kv_cache.length == 0:
@@ -114,8 +130,9 @@ class STTransformer(nn.Module):
         self.gradient_checkpointing = False
 
     def forward(self, x_BTSC: torch.Tensor, mode: TemporalMode = TemporalMode.CAUSAL,
-                kv_cache: Optional[TemporalKVCache] = None) -> Optional[torch.Tensor]:
-        """x (B, T, S, C) -> (B, T, S, C), or None in PREFILL mode (only the cache is filled)."""
+                kv_cache: Optional[TemporalKVCache] = None, first_frame: int = 0) -> Optional[torch.Tensor]:
+        """x (B, T, S, C) of frames first_frame.. -> (B, T, S, C), or None in PREFILL mode (only the cache is
+        filled)."""
         if (kv_cache is None) != (mode is TemporalMode.CAUSAL):
             raise ValueError(f"temporal mode {mode.name} {'needs' if kv_cache is None else 'takes no'} KV cache")
         # only whole windows: the cached modes write keys/values in place, which a recomputation would repeat
@@ -123,7 +140,8 @@ class STTransformer(nn.Module):
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
             if recompute:
-                x_BTSC = checkpoint(layer, x_BTSC, use_reentrant=False)
+                x_BTSC = checkpoint(layer, x_BTSC, mode, None, i, False, first_frame, use_reentrant=False)
             else:
-                x_BTSC = layer(x_BTSC, mode, kv_cache, i, kv_only=mode is TemporalMode.PREFILL and i == last)
+                x_BTSC = layer(x_BTSC, mode, kv_cache, i, kv_only=mode is TemporalMode.PREFILL and i == last,
+                               first_frame=first_frame)
         return x_BTSC

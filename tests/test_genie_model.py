@@ -227,7 +227,8 @@ def test_loss_is_factored_ce_over_masked_tokens_of_later_frames():
 
 
 VARIANTS = {"plain": {}, "actions": dict(num_latent_actions=3, action_dropout=0.0), "copy": dict(copy_radius=1),
-            "copy_match": dict(copy_radius=1, copy_match_input=True)}
+            "copy_match": dict(copy_radius=1, copy_match_input=True),
+            "rotary": dict(spatial_rope=True, temporal_rope=True)}
 
 
 def variant_model(variant: str) -> STMaskGIT:
@@ -237,6 +238,10 @@ def variant_model(variant: str) -> STMaskGIT:
             model.copy_head.score_proj.weight.normal_(0, 1.0)
             if model.copy_head.match_proj is not None:
                 model.copy_head.match_proj.weight.normal_(0, 1.0)
+    if model.config.temporal_rope:  # attention far from uniform over frames, so that a wrong frame offset shows
+        with torch.no_grad():
+            for layer in model.decoder.layers:
+                layer.temporal_attn.qkv.weight.normal_(0, 1.0)
     return model
 
 
