@@ -164,6 +164,17 @@ def test_gpu_recipe_configs_are_the_cpu_models_scaled(small, large):
     assert 9.9e6 < params < 10.1e6  # the README's 10.0 M
 
 
+def test_latent_action_config_is_the_main_model_with_latent_actions():
+    """sample_world_latent.json is the main command's model with the LAM's 8 latent actions in place of the real
+    action streams, so the two kinds of action model compare at the same architecture."""
+    real = ("action_names", "action_dim", "action_step_mean")
+    main, latent = (json.loads((CONFIG_DIR / f"{name}.json").read_text())
+                    for name in ("sample_world_actions", "sample_world_latent"))
+    assert latent == {**{k: v for k, v in main.items() if k not in real}, "num_latent_actions": 8}
+    config = GenieConfig.from_pretrained(CONFIG_DIR / "sample_world_latent.json")
+    assert config.uses_actions and config.action_names is None and config.num_latent_actions == 8
+
+
 @pytest.mark.parametrize("qk_norm", [False, True])
 def test_published_layout_checkpoint_matches_reference_forward(tmp_path, qk_norm):
     config = tiny_config(qk_norm=qk_norm)
