@@ -140,7 +140,7 @@ class STTransformer(nn.Module):
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
             if recompute:
-                x_BTSC = checkpoint(layer, x_BTSC, mode, None, i, False, first_frame, use_reentrant=False)
+                x_BTSC = checkpoint(layer, x_BTSC, mode, first_frame=first_frame, use_reentrant=False)
             else:
                 x_BTSC = layer(x_BTSC, mode, kv_cache, i, kv_only=mode is TemporalMode.PREFILL and i == last,
                                first_frame=first_frame)
