@@ -45,7 +45,7 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
-from common.cli import setup_logging
+from common.cli import cpu_has_native_bf16, setup_logging
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
@@ -143,7 +143,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--mixed_precision", default="auto", choices=("auto", "no", "bf16"),
                    help="auto: bf16 autocast on CUDA, fp32 on CPU. bf16 on a CPU with native bf16 (avx512_bf16, "
                         "AMX) trains faster than fp32 (benchmarks/bench_train.py --mixed_precision compare); on "
-                        "other CPUs it is emulated and slow.")
+                        "other CPUs it is emulated and slow (a warning says so when the CPU's flags lack it).")
     g.add_argument("--compile", action="store_true", help="torch.compile the model on CPU too (default: CUDA only).")
     g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
     g.add_argument("--gradient_checkpointing", action="store_true",
@@ -594,6 +594,10 @@ def run(args) -> None:
     accelerator = Accelerator(mixed_precision=mixed, log_with=None if args.report_to == "none" else args.report_to,
                               project_dir=args.output_dir, cpu=launched_world > 1 and not torch.cuda.is_available())
     setup_process_logging(accelerator)
+    if mixed == "bf16" and accelerator.device.type == "cpu" and cpu_has_native_bf16() is False:
+        logger.warning("--mixed_precision bf16 on a CPU without native bf16 (no avx512_bf16, amx_bf16 or bf16 "
+                       "among its /proc/cpuinfo flags): bf16 is emulated there and usually slower than fp32 "
+                       "(--mixed_precision no)")
     if launched_world and launched_world != accelerator.num_processes:
         raise TrainingError(f"launched as {launched_world} processes (WORLD_SIZE) but accelerate set up "
                             f"{accelerator.num_processes}; each process would train alone")

@@ -19,7 +19,7 @@ from typing import Optional
 
 import torch
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device
+from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, cpu_has_native_bf16, resolve_device
 from common.muon import build_optimizer
 from genie.actions import LATENT_ACTION_NAME
 from genie.masking import get_maskgit_collator
@@ -158,6 +158,10 @@ def main(argv=None) -> None:
     params = sum(p.numel() for p in model.parameters())
     print(f"STMaskGIT {config.num_layers} layers, d_model {config.d_model}, T {config.T}, {config.H}x{config.W}, "
           f"{params / 1e6:.1f} M params, batch {args.batch_size}, {device.type}, threads {torch.get_num_threads()}")
+    if device.type == "cpu" and args.mixed_precision != "no":
+        native = cpu_has_native_bf16()
+        print("this CPU's bf16: " + {True: "native", False: "emulated (no avx512_bf16, amx_bf16 or bf16 flag)",
+                                      None: "unknown (no CPU flags to read)"}[native])
     if args.readout == "compare":
         full = measure(args, device, args.mixed_precision, math_path=True, full_readout=True)
         masked = measure(args, device, args.mixed_precision, math_path=True)

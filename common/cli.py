@@ -1,6 +1,7 @@
 """Command-line helpers shared by every script: the --device and --num_threads flags, and one logging set-up."""
 import argparse
 import logging
+from pathlib import Path
 
 import torch
 
@@ -29,6 +30,29 @@ def resolve_device(name: str) -> torch.device:
     elif device.type == "mps" and not torch.backends.mps.is_available():
         raise ValueError(f"device {name!r}: MPS is not available on this machine (use --device cpu or auto)")
     return device
+
+
+# /proc/cpuinfo flag names of native bf16 arithmetic: x86 (AVX512-BF16, AMX) and Arm (FEAT_BF16)
+NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")
+
+
+def cpu_has_native_bf16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:
+    """Whether this CPU computes bf16 natively, read from its feature flags; None where they cannot be read.
+
+    torch's own check (mkldnn) accepts any AVX-512 CPU, where bf16 is emulated and slower than fp32.
+    """
+    try:
+        text = Path(cpuinfo).read_text(errors="replace")
+    except OSError:
+        return None
+    flags = set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() in ("flags", "Features"):
+            flags.update(value.split())
+    if not flags:
+        return None
+    return any(f in flags for f in NATIVE_BF16_FLAGS)
 
 
 def _device_name(name: str) -> str:

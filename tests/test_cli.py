@@ -4,7 +4,7 @@ import argparse
 import pytest
 import torch
 
-from common.cli import add_device_arg, add_hidden_alias, resolve_device
+from common.cli import add_device_arg, add_hidden_alias, cpu_has_native_bf16, resolve_device
 from magvit2 import build_sample
 from magvit2 import train as magvit2_train
 
@@ -46,3 +46,21 @@ def test_renamed_flags_keep_their_old_spelling():
     assert (new.adam_beta_1, new.adam_beta_2) == (0.5, 0.9)
     args = build_sample.parse_args(["--out_dir", "somewhere", "--tokenizer", "tok"])
     assert (args.output_dir, args.tokenizer_ckpt) == ("somewhere", "tok")
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("processor\t: 0\nflags\t\t: fpu sse2 avx512f avx512_bf16 avx512_vnni\n", True),     # AVX512-BF16
+    ("processor\t: 0\nflags\t\t: fpu sse2 avx512f amx_tile amx_bf16\n", True),          # AMX
+    ("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512bw avx512_vnni\n", False),  # AVX-512 without bf16
+    ("processor\t: 0\nFeatures\t: fp asimd sve bf16 i8mm\n", True),                      # Arm with FEAT_BF16
+    ("processor\t: 0\nFeatures\t: fp asimd evtstrm crc32\n", False),
+    ("processor\t: 0\nmodel name\t: some CPU\n", None),                                  # no flag line
+])
+def test_cpu_has_native_bf16_reads_the_feature_flags(tmp_path, text, expected):
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text(text)
+    assert cpu_has_native_bf16(str(cpuinfo)) is expected
+
+
+def test_cpu_has_native_bf16_is_unknown_without_cpuinfo(tmp_path):
+    assert cpu_has_native_bf16(str(tmp_path / "missing")) is None

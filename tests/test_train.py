@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from accelerate.state import AcceleratorState
 from safetensors.torch import load_file
 
 import train
@@ -266,3 +267,21 @@ def test_missing_tracker_package_is_reported(tiny_data, tmp_path, monkeypatch):
     monkeypatch.setattr(train.importlib.util, "find_spec", lambda name: None)
     with pytest.raises(SystemExit, match="--report_to wandb needs the wandb package"):
         train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "1", "--report_to", "wandb"))
+
+
+@pytest.fixture
+def fresh_accelerate_state():
+    """accelerate keeps one mixed-precision setting per process: a run in bf16 needs it cleared before and after."""
+    AcceleratorState._reset_state(reset_partial_state=True)
+    yield
+    AcceleratorState._reset_state(reset_partial_state=True)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the warning is about training on a CPU")
+@pytest.mark.parametrize("native, warned", [(False, True), (True, False), (None, False)])
+@pytest.mark.usefixtures("fresh_accelerate_state")
+def test_cpu_bf16_without_native_support_warns(tiny_data, tmp_path, monkeypatch, caplog, native, warned):
+    monkeypatch.setattr(train, "cpu_has_native_bf16", lambda: native)
+    with caplog.at_level("WARNING", logger="train"):
+        train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "0", "--mixed_precision", "bf16"))
+    assert ("emulated" in caplog.text) is warned
