@@ -52,7 +52,7 @@ def cpu_has_native_bf16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:
             flags.update(value.split())
     if not flags:
         return None
-    return any(f in flags for f in NATIVE_BF16_FLAGS)
+    return not flags.isdisjoint(NATIVE_BF16_FLAGS)
 
 
 def _device_name(name: str) -> str:
