@@ -5,11 +5,14 @@
 #      compares with the CPU default's (rendered by WORKERS processes, default the CPU count up to 8: 108 s with
 #      two on an H200 box; tokenized on the GPU in seconds);
 #   2. ./run_sample.sh on it with genie/configs/gpu_world_actions.json (8 layers, d_model 256: 10 M parameters, the
-#      main command's model otherwise), STEPS (default 6000) steps of 32 windows at learning rate 3e-3 (LR; the
-#      main command's 1e-2 diverges at this size: on an H200 the loss left 6 near step 79 and passed 1e6 by step
-#      120, with or without actions, while 3e-3 kept falling), run_sample.sh's weight decay (WEIGHT_DECAY, 0.4),
+#      main command's model otherwise), STEPS (default 6000) steps of 32 windows, the first WARMUP (default
+#      STEPS/20) warming up, at learning rate 3e-3 (LR; the main command's 1e-2 diverges at this size: on an H200
+#      the loss left 6 near step 79 and passed 1e6 by step 120, with or without actions, while 3e-3 kept falling
+#      over 900 steps), run_sample.sh's weight decay (WEIGHT_DECAY, 0.4),
 #      bf16 autocast and torch.compile (train.py's defaults on CUDA), then every evaluation of the main command,
 #      teacher-forced on all validation windows, and on data/unseen too when ./build.sh --unseen made it.
+# Measured on an H200 (README, "A recipe for a GPU box"): STEPS=900 ./run_gpu.sh --no_compile, about
+# 4.5 min of training (eager: torch.compile's ~4 min of compiling does not pay for itself in 900 steps).
 # The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO
 # as in run_sample.sh)
 # Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
@@ -34,6 +37,7 @@ CPUS=$(nproc 2>/dev/null || echo 2)
 
 export SAMPLE_DIR=$GPU_DIR OUT=${OUT:-data/genie_gpu} GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/gpu_world_actions.json}
 export EVAL_ARGS=${EVAL_ARGS-}
-exec ./run_sample.sh --per_device_train_batch_size 32 --max_train_steps "${STEPS:-6000}" --num_warmup_steps 300 \
+STEPS=${STEPS:-6000}
+exec ./run_sample.sh --per_device_train_batch_size 32 --max_train_steps "$STEPS" --num_warmup_steps "${WARMUP:-$(( STEPS / 20 ))}" \
   --learning_rate "${LR:-3e-3}" \
   --eval_every_n_steps 1000 --max_eval_steps 32 --checkpointing_steps 1000 "$@"

@@ -107,9 +107,9 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
                LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SAMPLED_ROLLOUT_ARGS="",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
                UNSEEN_DIR=str(tmp_path / "none"), STALL_RATIO="0.4", SKIP_BASELINES="1", WEIGHT_DECAY="0.1")
-    subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
-                    "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True,
-                   timeout=600)
+    env["STEPS"] = "40"  # the warm-up follows it: STEPS/20 unless WARMUP says otherwise
+    subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--per_device_train_batch_size", "1",
+                    "--eval_every_n_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     built = json.loads((tmp_path / "world" / "raw" / "sample_world.json").read_text())
     assert built["train"] == {"maps": ["MAP01"], "episodes_per_map": 1}
     saved = json.loads((tmp_path / "model" / "final_checkpt" / "config.json").read_text())
@@ -122,6 +122,8 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     assert json.loads((tmp_path / "model" / "generated" / "metadata.json").read_text())["stall_ratio"] == 0.4
     assert not (tmp_path / "model" / "metrics_rollout_sampled.json").exists()
     assert not (tmp_path / "model" / "baselines.json").exists()  # SKIP_BASELINES=1
-    groups = saved_training_state(tmp_path / "model")["optimizer"]["param_groups"]
+    state = saved_training_state(tmp_path / "model")
+    assert (state["trainer"]["args"]["max_train_steps"], state["trainer"]["args"]["num_warmup_steps"]) == (40, 2)
+    groups = state["optimizer"]["param_groups"]
     assert {g["initial_lr"] for g in groups} == {3e-3}  # the recipe's learning rate, not the main command's
     assert {g["weight_decay"] for g in groups} == {0.0, 0.1}  # WEIGHT_DECAY reaches train.py through run_sample.sh
