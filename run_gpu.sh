@@ -17,6 +17,8 @@
 # as in run_sample.sh)
 # Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
 # (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to magvit2.build_sample (e.g. more --train_maps).
+# SKIP_BUILD=1 trains on GPU_DIR as it is (its train/ and val/ built on another machine and copied, e.g. to a GPU
+# box without ViZDoom; checked against their MANIFEST.json first: 36 MB as xz-compressed tokens at the default size).
 # PY picks the Python (default venv/bin/python, from ./build.sh --no-data). Without a CUDA GPU it stops, unless
 # ALLOW_CPU=1 (hours to days of CPU time at these sizes; the tests run it at a tiny size).
 set -euo pipefail
@@ -30,10 +32,27 @@ if [ "${ALLOW_CPU:-0}" != 1 ] && ! "$PY" -c "import sys, torch; sys.exit(0 if to
   exit 1
 fi
 
-# shellcheck disable=SC2086  # BUILD_ARGS is a list of flags
-CPUS=$(nproc 2>/dev/null || echo 2)
-"$PY" -m magvit2.build_sample --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-16}" \
-  --workers "${WORKERS:-$(( CPUS < 8 ? CPUS : 8 ))}" ${BUILD_ARGS:-}
+if [ "${SKIP_BUILD:-0}" = 1 ]; then
+  # a world built elsewhere and copied here (e.g. a GPU box without ViZDoom): check it arrived whole
+  for split in train val; do
+    if [ ! -f "$GPU_DIR/$split/metadata.json" ]; then
+      echo "run_gpu.sh: SKIP_BUILD=1, but $GPU_DIR/$split/metadata.json is missing: build the world first (./run_gpu.sh" >&2
+      echo "  without SKIP_BUILD, or python -m magvit2.build_sample --output_dir DIR --train_episodes 16 on a machine" >&2
+      echo "  with ViZDoom) and copy its train/ and val/ to $GPU_DIR" >&2
+      exit 1
+    fi
+  done
+  if ! verified=$("$PY" -m data.verify "$GPU_DIR/train" "$GPU_DIR/val" 2>&1); then
+    grep -v '^OK' <<<"$verified" >&2
+    echo "run_gpu.sh: $GPU_DIR is not the world its MANIFEST.json records (above); copy it again" >&2
+    exit 1
+  fi
+else
+  # shellcheck disable=SC2086  # BUILD_ARGS is a list of flags
+  CPUS=$(nproc 2>/dev/null || echo 2)
+  "$PY" -m magvit2.build_sample --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-16}" \
+    --workers "${WORKERS:-$(( CPUS < 8 ? CPUS : 8 ))}" ${BUILD_ARGS:-}
+fi
 
 export SAMPLE_DIR=$GPU_DIR OUT=${OUT:-data/genie_gpu} GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/gpu_world_actions.json}
 export EVAL_ARGS=${EVAL_ARGS-}

@@ -1,6 +1,7 @@
 """The README's main job end to end on a tiny budget: sample world -> tokens -> GENIE -> generate -> GIF -> metrics."""
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -90,7 +91,8 @@ def test_main_job_pipeline_tiny(tmp_path):
 
 
 def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
-    """run_gpu.sh stops without CUDA before building anything; with ALLOW_CPU it builds, trains and evaluates."""
+    """run_gpu.sh stops without CUDA before building anything; with ALLOW_CPU it builds, trains and evaluates; with
+    SKIP_BUILD it trains on a copied world, and refuses a copy that is cut short or missing."""
     env = dict(os.environ, GPU_DIR=str(tmp_path / "world"), OUT=str(tmp_path / "model"))
     env.pop("ALLOW_CPU", None)
     refused = subprocess.run(["bash", str(REPO / "run_gpu.sh")], cwd=REPO, env=env, capture_output=True, text=True,
@@ -127,3 +129,23 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     groups = state["optimizer"]["param_groups"]
     assert {g["initial_lr"] for g in groups} == {3e-3}  # the recipe's learning rate, not the main command's
     assert {g["weight_decay"] for g in groups} == {0.0, 0.1}  # WEIGHT_DECAY reaches train.py through run_sample.sh
+
+    # SKIP_BUILD=1: the world copied without its frames (raw/) trains as it is, after a check against its manifests
+    copied = tmp_path / "copied"
+    for split in ("train", "val"):
+        shutil.copytree(tmp_path / "world" / split, copied / split)
+    env.update(GPU_DIR=str(copied), OUT=str(tmp_path / "model2"), SKIP_BUILD="1", STEPS="2")
+    subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--per_device_train_batch_size", "1",
+                    "--eval_every_n_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
+    assert (tmp_path / "model2" / "final_checkpt" / "model.safetensors").is_file()
+    assert not (copied / "raw").exists()  # nothing rendered again
+
+    with open(copied / "val" / "video.bin", "r+b") as f:  # a copy cut short
+        f.truncate(f.seek(0, 2) - 512)
+    broken = subprocess.run(["bash", str(REPO / "run_gpu.sh")], cwd=REPO, env=env, capture_output=True, text=True,
+                            timeout=120)
+    assert broken.returncode == 1 and "video.bin" in broken.stderr and "copy it again" in broken.stderr
+    shutil.rmtree(copied / "train")
+    missing = subprocess.run(["bash", str(REPO / "run_gpu.sh")], cwd=REPO, env=env, capture_output=True, text=True,
+                             timeout=120)
+    assert missing.returncode == 1 and f"{copied / 'train' / 'metadata.json'} is missing" in missing.stderr
