@@ -45,7 +45,7 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
-from common.cli import NATIVE_BF16_FLAGS, cpu_has_native_bf16, setup_logging
+from common.cli import NO_NATIVE_BF16, cpu_has_native_bf16, setup_logging
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
@@ -595,9 +595,8 @@ def run(args) -> None:
                               project_dir=args.output_dir, cpu=launched_world > 1 and not torch.cuda.is_available())
     setup_process_logging(accelerator)
     if mixed == "bf16" and accelerator.device.type == "cpu" and cpu_has_native_bf16() is False:
-        logger.warning(f"--mixed_precision bf16 on a CPU without native bf16 (none of {', '.join(NATIVE_BF16_FLAGS)} "
-                       "among its /proc/cpuinfo flags): bf16 is emulated there and usually slower than fp32 "
-                       "(--mixed_precision no)")
+        logger.warning(f"--mixed_precision bf16 on a CPU without native bf16 ({NO_NATIVE_BF16}): bf16 is emulated "
+                       "there and usually slower than fp32 (--mixed_precision no)")
     if launched_world and launched_world != accelerator.num_processes:
         raise TrainingError(f"launched as {launched_world} processes (WORLD_SIZE) but accelerate set up "
                             f"{accelerator.num_processes}; each process would train alone")

@@ -19,7 +19,7 @@ from typing import Optional
 
 import torch
 
-from common.cli import (NATIVE_BF16_FLAGS, add_device_arg, add_num_threads_arg, apply_num_threads, cpu_has_native_bf16,
+from common.cli import (NO_NATIVE_BF16, add_device_arg, add_num_threads_arg, apply_num_threads, cpu_has_native_bf16,
                         resolve_device)
 from common.muon import build_optimizer
 from genie.actions import LATENT_ACTION_NAME
@@ -160,7 +160,7 @@ def main(argv=None) -> None:
     print(f"STMaskGIT {config.num_layers} layers, d_model {config.d_model}, T {config.T}, {config.H}x{config.W}, "
           f"{params / 1e6:.1f} M params, batch {args.batch_size}, {device.type}, threads {torch.get_num_threads()}")
     if device.type == "cpu" and args.mixed_precision != "no":
-        kinds = {True: "native", False: f"emulated (none of {', '.join(NATIVE_BF16_FLAGS)} among the CPU's flags)",
+        kinds = {True: "native", False: f"emulated ({NO_NATIVE_BF16})",
                  None: "unknown (no CPU flags to read)"}
         print(f"this CPU's bf16: {kinds[cpu_has_native_bf16()]}")
     if args.readout == "compare":

@@ -34,6 +34,7 @@ def resolve_device(name: str) -> torch.device:
 
 # /proc/cpuinfo flag names of native bf16 arithmetic: x86 (AVX512-BF16, AMX) and Arm (FEAT_BF16)
 NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")
+NO_NATIVE_BF16 = f"none of {', '.join(NATIVE_BF16_FLAGS)} among the CPU's /proc/cpuinfo flags"
 
 
 def cpu_has_native_bf16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:
