@@ -3,8 +3,10 @@
 #
 #   ./build.sh            install, then build the embedded sample world (data/sample/{train,val}), offline
 #   ./build.sh --no-data  install only (what the tests need)
-#   ./build.sh --unseen   also build data/unseen: episodes on 4 Freedoom 2 maps the sample world never uses (MAP02,
-#                         MAP03, MAP06, MAP07; ~1.5 min), which run_sample.sh then evaluates on as well
+#   ./build.sh --unseen   also build three sets of maps the sample world never uses, one walk per map, which
+#                         run_sample.sh then evaluates on as well (~4 min): data/unseen (MAP02, MAP03, MAP06, MAP07),
+#                         data/unseen2 (MAP22, MAP25, MAP28, MAP31) and data/unseen3 (MAP23, MAP24, MAP26, MAP27,
+#                         MAP29, MAP30, MAP32: every Freedoom 2 map no other split uses)
 #   ./build.sh --1x       install, then download the 1X release (data/train_v1.1, data/val_v1.1, data/magvit2.ckpt)
 #                         and the published GENIE_35M weights with the Hugging Face CLI (needs internet)
 #
@@ -52,10 +54,15 @@ if [ "$WANT_SAMPLE" = 1 ]; then
 fi
 
 if [ "$WANT_UNSEEN" = 1 ]; then
-  # val = one episode on each unseen map (its train split, one MAP02 episode, is only a by-product of the builder)
-  echo "==> building episodes on maps the sample world never uses (data/unseen)"
+  # val = one episode on each unseen map (each set's train split, one episode on its first map, is only a by-product
+  # of the builder); a set whose recorded parameters match is not rebuilt
+  echo "==> building episodes on maps the sample world never uses (data/unseen, data/unseen2, data/unseen3)"
   "$VPY" -m magvit2.build_sample --output_dir data/unseen --seed 7 --train_maps MAP02 --train_episodes 1 \
     --val_maps MAP02 MAP03 MAP06 MAP07 --episode_len 1500
+  "$VPY" -m magvit2.build_sample --output_dir data/unseen2 --seed 13 --train_maps MAP22 --train_episodes 1 \
+    --val_maps MAP22 MAP25 MAP28 MAP31 --episode_len 1500
+  "$VPY" -m magvit2.build_sample --output_dir data/unseen3 --seed 17 --train_maps MAP23 --train_episodes 1 \
+    --val_maps MAP23 MAP24 MAP26 MAP27 MAP29 MAP30 MAP32 --episode_len 1500
 fi
 
 if [ "$WANT_1X" = 1 ]; then

@@ -24,8 +24,10 @@
 # the model without actions: GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS= WEIGHT_DECAY=0.05
 # STALL_RATIO=0.66 ./run_sample.sh --lr_scheduler_type cosine, the weight decay and schedule it was measured with).
 # run_gpu.sh is this job at a GPU's scale.
-# When UNSEEN_DIR (default data/unseen, made by ./build.sh --unseen) holds a val split, the model is also evaluated
-# there (teacher-forced and rollout) -> metrics_unseen.json, metrics_rollout_unseen.json, metrics_rollout_sampled_unseen.json.
+# Sets of unseen maps: each folder of UNSEEN_DIRS (default "data/unseen data/unseen2 data/unseen3", the three sets
+# ./build.sh --unseen makes) that holds a val split is also evaluated (teacher-forced and rollout) -> metrics_NAME.json,
+# metrics_rollout_NAME.json, metrics_rollout_sampled_NAME.json, NAME being the folder's name; folders without one are
+# skipped. UNSEEN_DIR=DIR (one folder) evaluates DIR alone, its files named metrics_unseen*.json as before.
 set -euo pipefail
 case "${1:-}" in -h|--help) sed -n '2,/^[^#]/s/^# \{0,1\}//p' "$0"; exit 0 ;; esac
 cd "$(dirname "$0")"
@@ -77,15 +79,25 @@ evaluate_tf "$VAL" | tee "$OUT/eval.log"
 # horizon against holding the last prompt frame.
 evaluate_rollout "$VAL" | tee "$OUT/eval_rollout.log"
 [ -z "$SAMPLED" ] || evaluate_rollout "$VAL" $SAMPLED | tee "$OUT/eval_rollout_sampled.log"
-UNSEEN_DIR=${UNSEEN_DIR:-data/unseen}
-if [ -f "$UNSEEN_DIR/val/metadata.json" ]; then
-  evaluate_tf "$UNSEEN_DIR/val" | tee "$OUT/eval_unseen.log"
-  evaluate_rollout "$UNSEEN_DIR/val" | tee "$OUT/eval_rollout_unseen.log"
-  [ -z "$SAMPLED" ] || evaluate_rollout "$UNSEEN_DIR/val" $SAMPLED | tee "$OUT/eval_rollout_sampled_unseen.log"
-  tail -n 1 "$OUT/eval_unseen.log" > "$OUT/metrics_unseen.json"
-  tail -n 1 "$OUT/eval_rollout_unseen.log" > "$OUT/metrics_rollout_unseen.json"
-  [ -z "$SAMPLED" ] || tail -n 1 "$OUT/eval_rollout_sampled_unseen.log" > "$OUT/metrics_rollout_sampled_unseen.json"
+# NAME=DIR pairs of the unseen sets (folder names and paths without spaces)
+if [ -n "${UNSEEN_DIR:-}" ]; then
+  UNSEEN_SETS="unseen=$UNSEEN_DIR"
+else
+  UNSEEN_SETS=""
+  for dir in ${UNSEEN_DIRS-data/unseen data/unseen2 data/unseen3}; do UNSEEN_SETS+=" $(basename "$dir")=$dir"; done
 fi
+SCORED_UNSEEN=""
+for pair in $UNSEEN_SETS; do
+  name=${pair%%=*}; dir=${pair#*=}
+  [ -f "$dir/val/metadata.json" ] || continue
+  SCORED_UNSEEN+=" $OUT/metrics*_$name.json"
+  evaluate_tf "$dir/val" | tee "$OUT/eval_$name.log"
+  evaluate_rollout "$dir/val" | tee "$OUT/eval_rollout_$name.log"
+  [ -z "$SAMPLED" ] || evaluate_rollout "$dir/val" $SAMPLED | tee "$OUT/eval_rollout_sampled_$name.log"
+  tail -n 1 "$OUT/eval_$name.log" > "$OUT/metrics_$name.json"
+  tail -n 1 "$OUT/eval_rollout_$name.log" > "$OUT/metrics_rollout_$name.json"
+  [ -z "$SAMPLED" ] || tail -n 1 "$OUT/eval_rollout_sampled_$name.log" > "$OUT/metrics_rollout_sampled_$name.json"
+done
 tail -n 1 "$OUT/eval.log" > "$OUT/metrics.json"
 tail -n 1 "$OUT/eval_lpips.log" > "$OUT/metrics_lpips.json"
 [ -n "${SKIP_BASELINES:-}" ] || tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"
@@ -94,3 +106,4 @@ tail -n 1 "$OUT/eval_rollout.log" > "$OUT/metrics_rollout.json"
 echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png"
 echo "metrics: $OUT/metrics.json (LPIPS: $OUT/metrics_lpips.json; copy baselines: $OUT/baselines.json;"
 echo "         rollouts: $OUT/metrics_rollout.json, sampled: $OUT/metrics_rollout_sampled.json)"
+[ -z "$SCORED_UNSEEN" ] || echo "unseen maps:$SCORED_UNSEEN"

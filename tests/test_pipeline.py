@@ -108,7 +108,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
                BUILD_ARGS=f"--train_maps MAP01 --val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
                LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SAMPLED_ROLLOUT_ARGS="",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
-               UNSEEN_DIR=str(tmp_path / "none"), STALL_RATIO="0.4", SKIP_BASELINES="1", WEIGHT_DECAY="0.1")
+               UNSEEN_DIRS=f"{tmp_path / 'none'} {tmp_path / 'world'}", STALL_RATIO="0.4", SKIP_BASELINES="1", WEIGHT_DECAY="0.1")
     env["STEPS"] = "40"  # the warm-up follows it: STEPS/20 unless WARMUP says otherwise
     subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
@@ -124,6 +124,11 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     assert json.loads((tmp_path / "model" / "generated" / "metadata.json").read_text())["stall_ratio"] == 0.4
     assert not (tmp_path / "model" / "metrics_rollout_sampled.json").exists()
     assert not (tmp_path / "model" / "baselines.json").exists()  # SKIP_BASELINES=1
+    # UNSEEN_DIRS: a folder with a val split is scored under its own name, one without is skipped
+    unseen = json.loads((tmp_path / "model" / "metrics_world.json").read_text())
+    assert unseen["num_examples"] == windows and unseen["copy_acc"] == metrics["copy_acc"]
+    assert json.loads((tmp_path / "model" / "metrics_rollout_world.json").read_text())["stall_ratio"] == 0.4
+    assert not list((tmp_path / "model").glob("metrics*none*")) and not list((tmp_path / "model").glob("*unseen*"))
     state = saved_training_state(tmp_path / "model")
     assert (state["trainer"]["args"]["max_train_steps"], state["trainer"]["args"]["num_warmup_steps"]) == (40, 2)
     groups = state["optimizer"]["param_groups"]
