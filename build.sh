@@ -54,15 +54,17 @@ if [ "$WANT_SAMPLE" = 1 ]; then
 fi
 
 if [ "$WANT_UNSEEN" = 1 ]; then
-  # val = one episode on each unseen map (each set's train split, one episode on its first map, is only a by-product
-  # of the builder); a set whose recorded parameters match is not rebuilt
+  # val = one episode on each unseen map; a set whose recorded parameters match is not rebuilt
   echo "==> building episodes on maps the sample world never uses (data/unseen, data/unseen2, data/unseen3)"
-  "$VPY" -m magvit2.build_sample --output_dir data/unseen --seed 7 --train_maps MAP02 --train_episodes 1 \
-    --val_maps MAP02 MAP03 MAP06 MAP07 --episode_len 1500
-  "$VPY" -m magvit2.build_sample --output_dir data/unseen2 --seed 13 --train_maps MAP22 --train_episodes 1 \
-    --val_maps MAP22 MAP25 MAP28 MAP31 --episode_len 1500
-  "$VPY" -m magvit2.build_sample --output_dir data/unseen3 --seed 17 --train_maps MAP23 --train_episodes 1 \
-    --val_maps MAP23 MAP24 MAP26 MAP27 MAP29 MAP30 MAP32 --episode_len 1500
+  while read -r name seed maps; do  # one walk per map; the first map's train walk is never used
+    # shellcheck disable=SC2086  # maps is a list
+    "$VPY" -m magvit2.build_sample --output_dir "data/$name" --seed "$seed" --train_maps "${maps%% *}" \
+      --train_episodes 1 --val_maps $maps --episode_len 1500 </dev/null
+  done <<'SETS'
+unseen 7 MAP02 MAP03 MAP06 MAP07
+unseen2 13 MAP22 MAP25 MAP28 MAP31
+unseen3 17 MAP23 MAP24 MAP26 MAP27 MAP29 MAP30 MAP32
+SETS
 fi
 
 if [ "$WANT_1X" = 1 ]; then

@@ -10,7 +10,7 @@
 #      the loss left 6 near step 79 and passed 1e6 by step 120, with or without actions, while 3e-3 kept falling
 #      over 900 steps), run_sample.sh's weight decay (WEIGHT_DECAY, 0.4),
 #      bf16 autocast and torch.compile (train.py's defaults on CUDA), then every evaluation of the main command,
-#      teacher-forced on all validation windows, and on data/unseen too when ./build.sh --unseen made it.
+#      teacher-forced on all validation windows, and on the unseen maps too when ./build.sh --unseen made them.
 # Measured on an H200 (README, "A recipe for a GPU box"): STEPS=900 ./run_gpu.sh --no_compile, about
 # 4.5 min of training (eager: torch.compile's ~4 min of compiling does not pay for itself in 900 steps).
 # The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO

@@ -79,17 +79,12 @@ evaluate_tf "$VAL" | tee "$OUT/eval.log"
 # horizon against holding the last prompt frame.
 evaluate_rollout "$VAL" | tee "$OUT/eval_rollout.log"
 [ -z "$SAMPLED" ] || evaluate_rollout "$VAL" $SAMPLED | tee "$OUT/eval_rollout_sampled.log"
-# NAME=DIR pairs of the unseen sets (folder names and paths without spaces)
-if [ -n "${UNSEEN_DIR:-}" ]; then
-  UNSEEN_SETS="unseen=$UNSEEN_DIR"
-else
-  UNSEEN_SETS=""
-  for dir in ${UNSEEN_DIRS-data/unseen data/unseen2 data/unseen3}; do UNSEEN_SETS+=" $(basename "$dir")=$dir"; done
-fi
+# evaluate_unseen NAME DIR: both protocols on DIR/val -> metrics_NAME.json, metrics_rollout[_sampled]_NAME.json;
+# nothing when DIR has no val split
 SCORED_UNSEEN=""
-for pair in $UNSEEN_SETS; do
-  name=${pair%%=*}; dir=${pair#*=}
-  [ -f "$dir/val/metadata.json" ] || continue
+evaluate_unseen() {
+  local name=$1 dir=$2
+  [ -f "$dir/val/metadata.json" ] || return 0
   SCORED_UNSEEN+=" $OUT/metrics*_$name.json"
   evaluate_tf "$dir/val" | tee "$OUT/eval_$name.log"
   evaluate_rollout "$dir/val" | tee "$OUT/eval_rollout_$name.log"
@@ -97,7 +92,12 @@ for pair in $UNSEEN_SETS; do
   tail -n 1 "$OUT/eval_$name.log" > "$OUT/metrics_$name.json"
   tail -n 1 "$OUT/eval_rollout_$name.log" > "$OUT/metrics_rollout_$name.json"
   [ -z "$SAMPLED" ] || tail -n 1 "$OUT/eval_rollout_sampled_$name.log" > "$OUT/metrics_rollout_sampled_$name.json"
-done
+}
+if [ -n "${UNSEEN_DIR:-}" ]; then
+  evaluate_unseen unseen "$UNSEEN_DIR"
+else
+  for dir in ${UNSEEN_DIRS-data/unseen data/unseen2 data/unseen3}; do evaluate_unseen "$(basename "$dir")" "$dir"; done
+fi
 tail -n 1 "$OUT/eval.log" > "$OUT/metrics.json"
 tail -n 1 "$OUT/eval_lpips.log" > "$OUT/metrics_lpips.json"
 [ -n "${SKIP_BASELINES:-}" ] || tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"
