@@ -1,9 +1,12 @@
 #!/usr/bin/env bash
 # The recipe for one CUDA GPU: a larger sample world and a larger model, evaluated exactly as run_sample.sh does.
-#   1. build GPU_DIR (default data/sample_gpu): EPISODES (default 16) walks per training map instead of 2, on the same
-#      maps with the same seed, so its validation split is byte for byte the default world's and every number
-#      compares with the CPU default's (rendered by WORKERS processes, default the CPU count up to 8: 108 s with
-#      two on an H200 box; tokenized on the GPU in seconds);
+#   1. build GPU_DIR (default data/sample_gpu): EPISODES (default 8) walks on each of TRAIN_MAPS (default 16 maps:
+#      the default world's 8 training maps and MAP08, MAP11, MAP14, MAP16, MAP17, MAP19, MAP20, MAP21, none of which
+#      any validation or unseen set uses), 8x the default world's training frames, with the same seed, so its
+#      validation split is byte for byte the default world's and every number compares with the CPU default's
+#      (rendered by WORKERS processes, default the CPU count up to 8: 108 s with two on an H200 box; tokenized on the
+#      GPU in seconds). At 900 steps, 16 maps x 8 walks gave better tokens and sampled futures than 8 maps x 16 walks
+#      on every unseen set, and worse on validation's familiar maps (two seeds against one; README);
 #   2. ./run_sample.sh on it with genie/configs/gpu_world_actions.json (8 layers, d_model 256: 10 M parameters, the
 #      main command's model otherwise), STEPS (default 6000) steps of 32 windows, the first WARMUP (default
 #      STEPS/20) warming up, at learning rate 3e-3 (LR; the main command's 1e-2 diverges at this size: on an H200
@@ -11,14 +14,14 @@
 #      over 900 steps), run_sample.sh's weight decay (WEIGHT_DECAY, 0.4),
 #      bf16 autocast and torch.compile (train.py's defaults on CUDA), then every evaluation of the main command,
 #      teacher-forced on all validation windows, and on the unseen maps too when ./build.sh --unseen made them.
-# Measured on an H200 (README, "A recipe for a GPU box"): STEPS=900 ./run_gpu.sh --no_compile, about
+# Measured on an H200 (README, "A recipe for a GPU box"): STEPS=900 ./run_gpu.sh --no_compile, seeds 42 and 1, about
 # 4.5 min of training (eager: torch.compile's ~4 min of compiling does not pay for itself in 900 steps).
 # The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO
 # as in run_sample.sh)
 # Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
-# (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to magvit2.build_sample (e.g. more --train_maps).
+# (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to magvit2.build_sample (e.g. --walk_speed).
 # SKIP_BUILD=1 trains on GPU_DIR as it is (its train/ and val/ built on another machine and copied, e.g. to a GPU
-# box without ViZDoom; checked against their MANIFEST.json first: 36 MB as xz-compressed tokens at the default size).
+# box without ViZDoom; checked against their MANIFEST.json first: 34 MB as xz-compressed tokens at the default size).
 # PY picks the Python (default venv/bin/python, from ./build.sh --no-data). Without a CUDA GPU it stops, unless
 # ALLOW_CPU=1 (hours to days of CPU time at these sizes; the tests run it at a tiny size).
 set -euo pipefail
@@ -26,6 +29,8 @@ case "${1:-}" in -h|--help) sed -n '2,/^[^#]/s/^# \{0,1\}//p' "$0"; exit 0 ;; es
 cd "$(dirname "$0")"
 export PY=${PY:-venv/bin/python}
 GPU_DIR=${GPU_DIR:-data/sample_gpu}
+# the default world's training maps, then eight maps that no validation or unseen set uses (build.sh --unseen)
+GPU_TRAIN_MAPS="MAP01 MAP04 MAP05 MAP09 MAP10 MAP12 MAP13 MAP15 MAP08 MAP11 MAP14 MAP16 MAP17 MAP19 MAP20 MAP21"
 if [ "${ALLOW_CPU:-0}" != 1 ] && ! "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)"; then
   echo "run_gpu.sh: no CUDA GPU visible to $PY; this recipe is sized for one (./run_sample.sh is the CPU job)." >&2
   echo "  ALLOW_CPU=1 runs it anyway." >&2
@@ -37,8 +42,8 @@ if [ "${SKIP_BUILD:-0}" = 1 ]; then
   for split in train val; do
     if [ ! -f "$GPU_DIR/$split/metadata.json" ]; then
       echo "run_gpu.sh: SKIP_BUILD=1, but $GPU_DIR/$split/metadata.json is missing: build the world first (./run_gpu.sh" >&2
-      echo "  without SKIP_BUILD, or python -m magvit2.build_sample --output_dir DIR --train_episodes 16 on a machine" >&2
-      echo "  with ViZDoom) and copy its train/ and val/ to $GPU_DIR" >&2
+      echo "  without SKIP_BUILD, or python -m magvit2.build_sample --output_dir DIR --train_episodes 8" >&2
+      echo "  --train_maps ... on a machine with ViZDoom) and copy its train/ and val/ to $GPU_DIR" >&2
       exit 1
     fi
   done
@@ -48,10 +53,10 @@ if [ "${SKIP_BUILD:-0}" = 1 ]; then
     exit 1
   fi
 else
-  # shellcheck disable=SC2086  # BUILD_ARGS is a list of flags
   CPUS=$(nproc 2>/dev/null || echo 2)
-  "$PY" -m magvit2.build_sample --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-16}" \
-    --workers "${WORKERS:-$(( CPUS < 8 ? CPUS : 8 ))}" ${BUILD_ARGS:-}
+  # shellcheck disable=SC2086  # TRAIN_MAPS and BUILD_ARGS are lists
+  "$PY" -m magvit2.build_sample --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-8}" \
+    --train_maps ${TRAIN_MAPS:-$GPU_TRAIN_MAPS} --workers "${WORKERS:-$(( CPUS < 8 ? CPUS : 8 ))}" ${BUILD_ARGS:-}
 fi
 
 export SAMPLE_DIR=$GPU_DIR OUT=${OUT:-data/genie_gpu} GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/gpu_world_actions.json}

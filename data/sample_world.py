@@ -219,14 +219,24 @@ class ExplorerPolicy:
         return _ACTIONS[self.action]
 
 
-def _wad_path() -> str:
+def is_episode_map(name: str) -> bool:
+    """True for a Doom 1 style map name, ExMy (Freedoom: Phase 1), False for MAPxx (Freedoom: Phase 2)."""
+    return len(name) == 4 and name[0] == "E" and name[2] == "M" and name[1].isdigit() and name[3].isdigit()
+
+
+def wad_name(map_name: str = "MAP01") -> str:
+    """The ViZDoom-bundled WAD holding `map_name`: freedoom1.wad for ExMy maps, freedoom2.wad for MAPxx."""
+    return "freedoom1.wad" if is_episode_map(map_name) else "freedoom2.wad"
+
+
+def _wad_path(map_name: str = "MAP01") -> str:
     import vizdoom as vzd  # imported here so `import data.sample_world` works without the optional dependency
 
-    return os.path.join(os.path.dirname(vzd.__file__), "freedoom2.wad")
+    return os.path.join(os.path.dirname(vzd.__file__), wad_name(map_name))
 
 
 def wad_maps(wad_path: str) -> list:
-    """Names of the maps (MAPxx lumps) in a Doom WAD file, read from its lump directory."""
+    """Names of the maps (MAPxx and ExMy lumps) in a Doom WAD file, read from its lump directory."""
     with open(wad_path, "rb") as f:
         magic, num_lumps, dir_offset = struct.unpack("<4sii", f.read(12))
         if magic not in (b"IWAD", b"PWAD"):
@@ -234,20 +244,26 @@ def wad_maps(wad_path: str) -> list:
         f.seek(dir_offset)
         directory = f.read(16 * num_lumps)
     names = [directory[i + 8: i + 16].rstrip(b"\0").decode("ascii", "replace") for i in range(0, len(directory), 16)]
-    return sorted(n for n in names if len(n) == 5 and n.startswith("MAP") and n[3:].isdigit())
+    return sorted(n for n in names if (len(n) == 5 and n.startswith("MAP") and n[3:].isdigit()) or is_episode_map(n))
 
 
 def check_maps(maps: Sequence[str]):
-    """Raise a clear error for a map that freedoom2.wad lacks (ViZDoom would hang on it)."""
-    wad = _wad_path()
-    known = wad_maps(wad)
-    unknown = [m for m in maps if m not in known]
-    if unknown or not maps:
-        raise ValueError(f"unknown map(s) {unknown or '(none given)'}: {wad} has {known[0]}..{known[-1]}")
+    """Raise a clear error for a map that its WAD lacks (ViZDoom would hang on it): MAPxx names are looked up in
+    freedoom2.wad, ExMy names in freedoom1.wad."""
+    if not maps:
+        raise ValueError("unknown map(s) (none given): name maps such as MAP01 (freedoom2.wad) or E1M1 (freedoom1.wad)")
+    problems = []
+    for wad in sorted({_wad_path(m) for m in maps}):
+        known = wad_maps(wad)
+        unknown = [m for m in maps if _wad_path(m) == wad and m not in known]
+        if unknown:
+            problems.append(f"{unknown}: {wad} has {known[0]}..{known[-1]}")
+    if problems:
+        raise ValueError(f"unknown map(s) {'; '.join(problems)}")
 
 
 def make_game(map_name: str, cfg: WorldConfig, workdir: Optional[str] = None):
-    """A headless ViZDoom game on `map_name` of the bundled freedoom2.wad: no monsters, HUD, weapon or sound.
+    """A headless ViZDoom game on `map_name` of a bundled WAD (`wad_name`): no monsters, HUD, weapon or sound.
 
     The engine writes _vizdoom.ini and a _vizdoom/ folder into its working directory: `workdir` (default: the
     current one) gives it a private one, so that engines started at the same moment do not race to create them.
@@ -258,7 +274,7 @@ def make_game(map_name: str, cfg: WorldConfig, workdir: Optional[str] = None):
     game = vzd.DoomGame()
     if workdir is not None:
         game.set_doom_config_path(os.path.join(workdir, "_vizdoom.ini"))
-    game.set_doom_game_path(_wad_path())
+    game.set_doom_game_path(_wad_path(map_name))
     game.set_doom_map(map_name)
     game.set_screen_resolution(vzd.ScreenResolution.RES_160X120)
     game.set_screen_format(vzd.ScreenFormat.RGB24)
@@ -284,7 +300,7 @@ def make_game(map_name: str, cfg: WorldConfig, workdir: Optional[str] = None):
             os.chdir(workdir)  # the engine process inherits it at init; nothing else runs meanwhile
         game.init()
     except Exception as e:  # ViZDoom raises its own types; name the map in the message
-        raise RuntimeError(f"ViZDoom could not start map {map_name!r} of freedoom2.wad: {e}") from e
+        raise RuntimeError(f"ViZDoom could not start map {map_name!r} of {wad_name(map_name)}: {e}") from e
     finally:
         os.chdir(cwd)
     return game
@@ -578,7 +594,8 @@ def main():
     p.add_argument("--output_dir", default="data/sample/raw", help="directory for train.npz, val.npz and the sidecar")
     add_hidden_alias(p, "--out_dir", "output_dir")  # the spelling before train.py's was adopted
     p.add_argument("--seed", type=int, default=0, help="master seed; every episode's seed derives from it")
-    p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS), help="freedoom2.wad maps for training")
+    p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS),
+                   help="maps for training: MAPxx of freedoom2.wad, ExMy of freedoom1.wad (both bundled with ViZDoom)")
     p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
                    help="maps for validation (held-out episodes on these maps; default adds the held-out map)")
     p.add_argument("--train_episodes", type=int, default=10, help="training episodes per training map")

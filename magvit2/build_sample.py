@@ -102,7 +102,8 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=0, help="seed of the episode generator")
     p.add_argument("--train_episodes", type=int, default=2,
                    help="episodes per training map (8 maps); validation gets 1 held-out episode per map + 1 held-out map")
-    p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS), help="freedoom2.wad maps for training")
+    p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS),
+                   help="maps for training: MAPxx of freedoom2.wad, ExMy of freedoom1.wad (both bundled with ViZDoom)")
     p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
                    help="maps of the held-out validation episodes (the last one is never trained on)")
     p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")

@@ -105,7 +105,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     config.write_text(json.dumps({"num_layers": 1, "num_heads": 2, "d_model": 32, "T": 16, "S": 256,
                                   "image_vocab_size": 262144, "num_prompt_frames": 8, "copy_radius": 1}))
     env.update(ALLOW_CPU="1", EPISODES="1", GENIE_CONFIG=str(config), GENERATE_ARGS="", NUM_EXAMPLES="1",
-               BUILD_ARGS=f"--train_maps MAP01 --val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
+               TRAIN_MAPS="MAP01", BUILD_ARGS=f"--val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
                LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SAMPLED_ROLLOUT_ARGS="",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
                UNSEEN_DIRS=f"{tmp_path / 'none'} {tmp_path / 'world'}", STALL_RATIO="0.4", SKIP_BASELINES="1", WEIGHT_DECAY="0.1")
@@ -113,7 +113,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     built = json.loads((tmp_path / "world" / "raw" / "sample_world.json").read_text())
-    assert built["train"] == {"maps": ["MAP01"], "episodes_per_map": 1}
+    assert built["train"] == {"maps": ["MAP01"], "episodes_per_map": 1}  # TRAIN_MAPS and EPISODES reach the builder
     saved = json.loads((tmp_path / "model" / "final_checkpt" / "config.json").read_text())
     assert (saved["d_model"], saved["copy_radius"]) == (32, 1)
     metrics = json.loads((tmp_path / "model" / "metrics.json").read_text())

@@ -209,6 +209,22 @@ def test_train_and_val_are_disjoint():
     assert not np.array_equal(train["frames"], val["frames"])
 
 
+def test_episode_maps_come_from_freedoom1_and_unknown_maps_name_their_wad():
+    """ExMy names render Freedoom: Phase 1's maps (36 more than MAPxx's 32); a bad name of either kind is refused with
+    the WAD that lacks it, before ViZDoom starts (it would hang on a missing map)."""
+    assert [sw.wad_name(m) for m in ("E1M1", "E4M9", "MAP01", "MAP32")] == ["freedoom1.wad"] * 2 + ["freedoom2.wad"] * 2
+    assert not sw.is_episode_map("EXM1") and not sw.is_episode_map("E1M10")
+    assert len(sw.wad_maps(sw._wad_path("E1M1"))) == 36 and sw.wad_maps(sw._wad_path("MAP01"))[-1] == "MAP32"
+    with pytest.raises(ValueError, match=r"\['E5M1'\]: .*freedoom1.wad has E1M1..E4M9; \['MAP40'\]: .*freedoom2.wad"):
+        sw.check_maps(["E1M1", "E5M1", "MAP01", "MAP40"])
+    with pytest.raises(ValueError, match="none given"):
+        sw.check_maps([])
+    walk = sw.generate_split(("E1M1", "MAP01"), episodes_per_map=1, episode_len=40, seed=0, cfg=FAST, progress=False)
+    assert list(walk["maps"]) == ["E1M1", "MAP01"] and walk["frames"].shape == (80, 64, 64, 3)
+    e1m1 = walk["frames"][:40].astype(np.int16)
+    assert np.abs(np.diff(e1m1, axis=0)).mean() > 1  # a walk through a lit map, not a frozen or black screen
+
+
 def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
     out = tmp_path / "raw"
     argv = ["sample_world", "--output_dir", str(out), "--seed", "1", "--train_maps", "MAP01", "--val_maps", "MAP18",
