@@ -224,12 +224,12 @@ def is_episode_map(name: str) -> bool:
     return len(name) == 4 and name[0] == "E" and name[2] == "M" and name[1].isdigit() and name[3].isdigit()
 
 
-def wad_name(map_name: str = "MAP01") -> str:
+def wad_name(map_name: str) -> str:
     """The ViZDoom-bundled WAD holding `map_name`: freedoom1.wad for ExMy maps, freedoom2.wad for MAPxx."""
     return "freedoom1.wad" if is_episode_map(map_name) else "freedoom2.wad"
 
 
-def _wad_path(map_name: str = "MAP01") -> str:
+def _wad_path(map_name: str) -> str:
     import vizdoom as vzd  # imported here so `import data.sample_world` works without the optional dependency
 
     return os.path.join(os.path.dirname(vzd.__file__), wad_name(map_name))
@@ -252,10 +252,13 @@ def check_maps(maps: Sequence[str]):
     freedoom2.wad, ExMy names in freedoom1.wad."""
     if not maps:
         raise ValueError("unknown map(s) (none given): name maps such as MAP01 (freedoom2.wad) or E1M1 (freedoom1.wad)")
+    by_wad = {}
+    for m in maps:
+        by_wad.setdefault(_wad_path(m), []).append(m)
     problems = []
-    for wad in sorted({_wad_path(m) for m in maps}):
+    for wad, names in sorted(by_wad.items()):
         known = wad_maps(wad)
-        unknown = [m for m in maps if _wad_path(m) == wad and m not in known]
+        unknown = [m for m in names if m not in known]
         if unknown:
             problems.append(f"{unknown}: {wad} has {known[0]}..{known[-1]}")
     if problems:
