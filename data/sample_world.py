@@ -219,6 +219,10 @@ class ExplorerPolicy:
         return _ACTIONS[self.action]
 
 
+# what a map name may be, for the --train_maps help of the scripts that build worlds
+MAP_NAMES_HELP = "MAPxx of freedoom2.wad, ExMy of freedoom1.wad (both bundled with ViZDoom)"
+
+
 def is_episode_map(name: str) -> bool:
     """True for a Doom 1 style map name, ExMy (Freedoom: Phase 1), False for MAPxx (Freedoom: Phase 2)."""
     return len(name) == 4 and name[0] == "E" and name[2] == "M" and name[1].isdigit() and name[3].isdigit()
@@ -598,7 +602,7 @@ def main():
     add_hidden_alias(p, "--out_dir", "output_dir")  # the spelling before train.py's was adopted
     p.add_argument("--seed", type=int, default=0, help="master seed; every episode's seed derives from it")
     p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS),
-                   help="maps for training: MAPxx of freedoom2.wad, ExMy of freedoom1.wad (both bundled with ViZDoom)")
+                   help=f"maps for training: {MAP_NAMES_HELP}")
     p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
                    help="maps for validation (held-out episodes on these maps; default adds the held-out map)")
     p.add_argument("--train_episodes", type=int, default=10, help="training episodes per training map")

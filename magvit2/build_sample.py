@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from common.cli import add_device_arg, add_hidden_alias, resolve_device
-from data.sample_world import HELDOUT_MAPS, TRAIN_MAPS, WorldConfig, build_sample_world, mirror_split, save_split
+from data.sample_world import (HELDOUT_MAPS, MAP_NAMES_HELP, TRAIN_MAPS, WorldConfig, build_sample_world, mirror_split,
+                               save_split)
 from magvit2.model import VQModel
 from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 
@@ -103,7 +104,7 @@ def parse_args(argv=None):
     p.add_argument("--train_episodes", type=int, default=2,
                    help="episodes per training map (8 maps); validation gets 1 held-out episode per map + 1 held-out map")
     p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS),
-                   help="maps for training: MAPxx of freedoom2.wad, ExMy of freedoom1.wad (both bundled with ViZDoom)")
+                   help=f"maps for training: {MAP_NAMES_HELP}")
     p.add_argument("--val_maps", nargs="+", default=list(TRAIN_MAPS + HELDOUT_MAPS),
                    help="maps of the held-out validation episodes (the last one is never trained on)")
     p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
