@@ -51,6 +51,10 @@ prompt frame (P - 1) for every horizon. The JSON line holds only these keys (no 
 - maskgit_steps, temperature, copy_bias, greedy_tokens, sampled_tokens, stall_ratio: the sampler that generated
   them (a window held by the stall rule shows unchanged = 1 after the frame it stalled at);
 - gen_time: seconds per generated frame (tokens only, as above); num_examples: windows evaluated.
+With --per_window_out FILE (rollout and copy_ceiling) the same per-horizon lists are also written for each window
+alone, one JSON line per window, with where the window lies in the dataset (window, first_frame, segment_id), so
+that the scores can be split by what happens in each window (its actions, its map); the summary's lists are their
+means over the file's lines.
 
 Copy-ceiling protocol (--protocol copy_ceiling; no checkpoint is read): the rollout protocol's windows, prompt and
 scores, with the generated frames replaced by the best futures made only of whole-token copies, chosen knowing the
@@ -78,7 +82,8 @@ from tqdm import tqdm
 from common.cli import (add_device_arg, add_stall_ratio_arg, add_token_choice_args, check_stall_ratio,
                         resolve_device, setup_logging)
 from common.config import ConfigError
-from common.errors import CheckpointError, DataMismatchError, WriteError
+from common.errors import CheckpointError, DataMismatchError, WriteError, writing
+from common.files import atomic_file
 from common.images import psnr, ssim
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.actions import LATENT_ACTION_NAME, latent_action_sidecar, prepare_action_streams, window_actions
@@ -159,6 +164,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="Models with action inputs: give them none (every frame gets the learned 'no action' "
                              "input that training's action dropout teaches), to measure what the model predicts "
                              "from the frames alone. The latent-action metrics (delta_psnr, probe) are skipped.")
+    parser.add_argument("--per_window_out", default=None,
+                        help="Rollout and copy_ceiling only: also write the scores of each window alone to this JSON "
+                             "Lines file (one line per window, written when the run ends): window (its index among "
+                             "the dataset's windows), first_frame (its first frame in video.bin), segment_id (when "
+                             "the dataset has segment_ids.bin), and every per-horizon list of the summary "
+                             "(rollout_psnr, hold_psnr, ..., true_repeated) for that window.")
     parser.add_argument("--save_outputs_dir", default=None,
                         help="Write the predictions as a token dataset in the generated layout: per window, "
                              "frame 0 | predicted frames 1..T-1 | ground truth frames 1..T-1.")
@@ -209,12 +220,18 @@ def parse_args(argv=None) -> argparse.Namespace:
             parser.error(f"--num_prompt_frames must be in 1..{args.window_size - 1} (at least one prompt frame and "
                          f"one frame to generate in windows of --window_size {args.window_size}), got "
                          f"{args.num_prompt_frames}")
+        if args.per_window_out is not None and Path(args.per_window_out).is_dir():
+            parser.error(f"--per_window_out is a file to write; {args.per_window_out} is a directory")
         if args.save_outputs_dir is not None:
             parser.error(f"--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
                          f"{args.protocol}")
         check_stall_ratio(parser, args.stall_ratio, args.num_prompt_frames)
-    elif args.num_prompt_frames is not None:
-        parser.error("--num_prompt_frames applies to --protocol rollout and copy_ceiling only")
+    else:
+        if args.num_prompt_frames is not None:
+            parser.error("--num_prompt_frames applies to --protocol rollout and copy_ceiling only")
+        if args.per_window_out is not None:
+            parser.error("--per_window_out applies to --protocol rollout and copy_ceiling only (the teacher-forced "
+                         "protocol's predictions: --save_outputs_dir)")
     if args.val_data_dir is None:
         args.val_data_dir = default_val_data_dir()
     return args
@@ -369,13 +386,35 @@ def token_statistics(pred_NhHW: torch.Tensor, last_NHW: torch.Tensor, future_NhH
 
 
 def add_rollout_scores(sums: dict, scorer: FrameScorer, tokens_BTHW: torch.Tensor, x_BTHW: torch.Tensor, P: int,
-                       with_lpips: bool) -> None:
+                       with_lpips: bool, per_window: Optional[list] = None) -> None:
     """Add the per-horizon scores and token statistics of generated windows (B, T, H, W) against the true ones
-    (frames P.. generated, frame P - 1 held) to sums {key: (h,) summed over windows}, in place."""
+    (frames P.. generated, frame P - 1 held) to sums {key: (h,) summed over windows}, in place; with a list
+    `per_window`, also append each window's own {key: [h floats]}."""
     scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips)
     scores.update(token_statistics(tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:]))
     for key, values_Bh in scores.items():
         sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
+    if per_window is not None:
+        lists = {key: values_Bh.double().cpu().tolist() for key, values_Bh in scores.items()}
+        per_window.extend({key: lists[key][b] for key in lists} for b in range(tokens_BTHW.shape[0]))
+
+
+def write_per_window(path, per_window: list, dataset: RawTokenDataset, indices: List[int]) -> None:
+    """Write --per_window_out: one JSON line per evaluated window (in `indices` order, as the loader gave them),
+    its place in `dataset` first, then its scores; atomically, creating the parent directory."""
+    if len(per_window) != len(indices):
+        raise EvaluationError(f"internal: {len(per_window)} per-window scores for {len(indices)} windows")
+    lines = []
+    for window, scores in zip(indices, per_window):
+        first_frame = int(dataset.valid_start_inds[window])
+        place = {"window": window, "first_frame": first_frame}
+        if dataset.segment_ids is not None:
+            place["segment_id"] = int(dataset.segment_ids[first_frame])
+        lines.append(json.dumps({**place, **scores}))
+    path = Path(path)
+    with writing("the per-window scores", path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_file(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"), "the per-window scores")
 
 
 def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_time: Optional[float]) -> dict:
@@ -396,8 +435,9 @@ def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_ti
 
 @torch.no_grad()
 def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
-                     scorer: FrameScorer) -> dict:
-    """Run the rollout protocol over `loader` (module doc); return the metrics dict (the JSON line's content)."""
+                     scorer: FrameScorer, per_window: Optional[list] = None) -> dict:
+    """Run the rollout protocol over `loader` (module doc); return the metrics dict (the JSON line's content).
+    per_window: when a list, each window's own scores are appended to it (`add_rollout_scores`)."""
     P = args.num_prompt_frames
     with_lpips = not args.skip_lpips
     generator = torch.Generator(device=device).manual_seed(args.seed)
@@ -420,7 +460,7 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
         _synchronize(device)
         gen_time.update(time.perf_counter() - start, B * (T - P))
 
-        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips)
+        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips, per_window)
         num_examples += B
         progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
@@ -431,15 +471,15 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
 
 @torch.no_grad()
 def copy_ceiling_evaluate(loader, args: argparse.Namespace, device: torch.device, scorer: FrameScorer,
-                          num_bits: int) -> dict:
+                          num_bits: int, per_window: Optional[list] = None) -> dict:
     """The copy-ceiling protocol over `loader` (module doc): the rollout protocol's scores of
-    genie.copy_ceiling.ceiling_rollout's frames."""
+    genie.copy_ceiling.ceiling_rollout's frames (each window's own appended to `per_window` when a list)."""
     P, with_lpips = args.num_prompt_frames, not args.skip_lpips
     sums, num_examples, exact, num_tokens = {}, 0, 0, 0
     for batch in tqdm(loader, desc="copy ceiling", unit="batch", file=sys.stderr):
         x_BTHW = batch["tokens"].to(device).long()
         tokens_BTHW, exact_B = ceiling_rollout(x_BTHW, P, args.ceiling_radius, args.ceiling_block, num_bits)
-        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips)
+        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips, per_window)
         num_examples += x_BTHW.shape[0]
         exact += int(exact_B.sum())
         num_tokens += tokens_BTHW[:, P:].numel()
@@ -461,7 +501,11 @@ def run_copy_ceiling(args: argparse.Namespace, device: torch.device) -> dict:
     logger.info("copy ceiling of %d windows of %s (radius %d, block %d)", len(indices), args.val_data_dir,
                 args.ceiling_radius, args.ceiling_block)
     num_bits = (int(dataset.metadata["vocab_size"]) - 1).bit_length()
-    return copy_ceiling_evaluate(loader, args, device, frame_scorer(args, dataset, device), num_bits)
+    per_window = [] if args.per_window_out else None
+    result = copy_ceiling_evaluate(loader, args, device, frame_scorer(args, dataset, device), num_bits, per_window)
+    if per_window is not None:
+        write_per_window(args.per_window_out, per_window, dataset, indices)
+    return result
 
 
 @torch.no_grad()
@@ -608,7 +652,10 @@ def run(args: argparse.Namespace) -> dict:
                 device)
 
     if args.protocol == "rollout":
-        result = rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device))
+        per_window = [] if args.per_window_out else None
+        result = rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device), per_window)
+        if per_window is not None:
+            write_per_window(args.per_window_out, per_window, dataset, indices)
     else:
         result = teacher_forced_result(model, loader, dataset, args, device)
     return {**result, "actions_withheld": True} if args.withhold_actions else result

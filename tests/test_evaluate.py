@@ -366,12 +366,39 @@ def test_rollout_protocol_json_line(tiny, capsys):
     assert with_lpips["hold_psnr"] == result["hold_psnr"]
 
 
+PER_HORIZON_KEYS = [f"{name}_{metric}" for name in ("rollout", "hold") for metric in ("psnr", "ssim")] + [
+    f"{name}_{stat}" for name in ("rollout", "true") for stat in ("unchanged", "repeated")]
+
+
+@pytest.mark.parametrize("protocol", ["rollout", "copy_ceiling"])
+def test_per_window_scores_place_each_window_and_average_to_the_summary(tiny, tmp_path, capsys, protocol):
+    out = tmp_path / "not_yet" / "windows.jsonl"  # the parent directory is created
+    assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", protocol, "--num_prompt_frames", "3",
+                          "--max_examples", "5", "--spread_examples", "--tokenizer_ckpt", str(tiny.tokenizer),
+                          "--skip_lpips", "--per_window_out", str(out))) == 0  # batches of 3: 3 + 2 windows
+    summary = last_json_line(capsys.readouterr().out)
+    lines = [json.loads(line) for line in out.read_text().splitlines()]
+    dataset = RawTokenDataset(tiny.data, window_size=8, stride=3, filter_overlaps=True)
+    segment_ids = np.fromfile(tiny.data / "segment_ids.bin", dtype="<i4")
+    assert [line["window"] for line in lines] == example_indices(len(dataset), 5, True)
+    for line in lines:
+        assert line["first_frame"] == dataset.valid_start_inds[line["window"]]
+        assert line["segment_id"] == segment_ids[line["first_frame"]]
+        assert "rollout_lpips" not in line  # --skip_lpips
+    for key in PER_HORIZON_KEYS:
+        assert all(len(line[key]) == 8 - 3 for line in lines)
+        assert np.mean([line[key] for line in lines], axis=0) == pytest.approx(summary[key], abs=1e-5)
+    assert len({tuple(line["hold_psnr"]) for line in lines}) == 5  # each window's own scores, not the mean
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--protocol", "rollout", "--num_prompt_frames", "0"], "--num_prompt_frames must be in 1..7"),
     (["--protocol", "rollout", "--num_prompt_frames", "8"], "--num_prompt_frames must be in 1..7"),
     (["--num_prompt_frames", "3"], "--protocol rollout and copy_ceiling only"),
     (["--protocol", "rollout", "--num_prompt_frames", "3", "--save_outputs_dir", "out"],
      "does not apply to --protocol rollout"),
+    (["--per_window_out", "windows.jsonl"], "--per_window_out applies to --protocol rollout and copy_ceiling only"),
+    (["--protocol", "rollout", "--num_prompt_frames", "3", "--per_window_out", "."], "is a directory"),
 ])
 def test_bad_rollout_flags_are_usage_errors(tiny, capsys, extra, message):
     with pytest.raises(SystemExit) as exit_info:
