@@ -49,9 +49,11 @@ def read_per_window(path) -> List[dict]:
 
 def motion(lines: List[dict], dataset: RawTokenDataset, stream: str, column: int, num_prompt_frames: int,
            where: str) -> np.ndarray:
-    """(N,) mean |stream[:, column]| over each window's generated frames (frames num_prompt_frames..)."""
-    if stream not in dataset.action_names:
-        raise BreakdownError(f"{where}: has no action stream {stream!r} (it has {dataset.action_names})")
+    """(N,) mean |stream[:, column]| over each window's generated frames (frames num_prompt_frames..); `dataset`
+    reads `stream` as step means (its constructor has already checked that the stream exists)."""
+    num_columns = dataset.action_dims[stream]
+    if not 0 <= column < num_columns:
+        raise BreakdownError(f"{where}: stream {stream!r} has {num_columns} columns, not column {column}")
     values = []
     for line in lines:
         window, first_frame = line["window"], line["first_frame"]
@@ -59,8 +61,6 @@ def motion(lines: List[dict], dataset: RawTokenDataset, stream: str, column: int
             raise BreakdownError(f"{where}: window {window} does not start at frame {first_frame} here; pass the "
                                  f"--val_data_dir, --stride and --num_prompt_frames that evaluate.py used")
         rows = dataset.get_window_actions(first_frame)[stream]
-        if not 0 <= column < rows.shape[1]:
-            raise BreakdownError(f"{where}: stream {stream!r} has {rows.shape[1]} columns, not column {column}")
         values.append(float(np.abs(rows[num_prompt_frames:, column]).mean()))
     return np.array(values)
 
