@@ -3,8 +3,8 @@
 #   1. build GPU_DIR (default data/sample_gpu): EPISODES (default 8) walks on each of TRAIN_MAPS (default the
 #      default world's 16 maps: MAP01, 04, 05, 09, 10, 12, 13, 15, whose other walks validation scores, and MAP08, 11,
 #      14, 16, 17, 19, 20, 21, which no validation or unseen set uses), 4x the default world's training frames, with
-#      the same seed, so its
-#      validation split is byte for byte the default world's and every number compares with the CPU default's
+#      the same seed, so its validation split is byte for byte the default world's and every number compares with
+#      the CPU default's
 #      (rendered by WORKERS processes, default the CPU count up to 8: 108 s with two on an H200 box; tokenized on the
 #      GPU in seconds). At 900 steps, 16 maps x 8 walks gave better tokens and sampled futures than 8 maps x 16 walks
 #      on every unseen set, and worse on validation's familiar maps (two seeds against one; README);

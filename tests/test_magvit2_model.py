@@ -1,7 +1,6 @@
 """MAGVIT2 tokenizer: config, published architecture and names, DCR depth-to-space, checkpoint loading."""
 import json
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -261,8 +260,9 @@ def test_save_pretrained_round_trip(tmp_path):
 
 def test_shipped_tokenizer_tokens_do_not_depend_on_the_batch():
     """build_sample encodes in batches of 8 for speed: the tokens must be those of the former batches of 256."""
-    shipped = Path(__file__).resolve().parents[1] / "magvit2" / "pretrained" / "sample_world_64"
-    model = VQModel.from_checkpoint(shipped).eval()
+    from magvit2.build_sample import SHIPPED_TOKENIZER, resolve_tokenizer
+
+    model = VQModel.from_checkpoint(resolve_tokenizer(SHIPPED_TOKENIZER)).eval()
     rng = np.random.default_rng(0)
     smooth = np.repeat(np.repeat(rng.integers(0, 256, (270, 8, 8, 3), dtype=np.uint8), 8, axis=1), 8, axis=2)
     images = np.concatenate([smooth, rng.integers(0, 256, (30, 64, 64, 3), dtype=np.uint8)])
