@@ -79,8 +79,8 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import (add_device_arg, add_stall_ratio_arg, add_token_choice_args, check_stall_ratio,
-                        resolve_device, setup_logging)
+from common.cli import (add_device_arg, add_num_threads_arg, add_stall_ratio_arg, add_token_choice_args,
+                        apply_num_threads, check_stall_ratio, resolve_device, setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError, writing
 from common.files import atomic_file
@@ -187,6 +187,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "needed), pred_lpips and dec_time are null. Rollout: frames are still decoded for PSNR / "
                              "SSIM, the *_lpips keys are null.")
     add_device_arg(parser)
+    add_num_threads_arg(parser)
     parser.add_argument("--seed", type=int, default=0, help="Seed of the sampler's random numbers.")
     parser.add_argument("--train_data_dir", default=DEFAULT_TRAIN_DIR,
                         help="Token dataset whose latent actions and buttons fit the latent action probe (checkpoints "
@@ -629,6 +630,7 @@ def run(args: argparse.Namespace) -> dict:
         raise EvaluationError(f"evaluation runs in a single process, but WORLD_SIZE={world_size}: launch it with "
                               f"plain `python evaluate.py` (not torchrun / accelerate launch with several processes)")
     device = resolve_device(args.device)
+    apply_num_threads(args.num_threads)
     torch.manual_seed(args.seed)
     if args.protocol == "copy_ceiling":
         return run_copy_ceiling(args, device)

@@ -45,7 +45,7 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
-from common.cli import NO_NATIVE_BF16, cpu_has_native_bf16, setup_logging
+from common.cli import NO_NATIVE_BF16, add_num_threads_arg, apply_num_threads, cpu_has_native_bf16, setup_logging
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
@@ -144,6 +144,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="auto: bf16 autocast on CUDA, fp32 on CPU. bf16 on a CPU with native bf16 (avx512_bf16, "
                         "AMX) trains faster than fp32 (benchmarks/bench_train.py --mixed_precision compare); on "
                         "other CPUs it is emulated and slow (a warning says so when the CPU's flags lack it).")
+    add_num_threads_arg(g)
     g.add_argument("--compile", action="store_true", help="torch.compile the model on CPU too (default: CUDA only).")
     g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
     g.add_argument("--gradient_checkpointing", action="store_true",
@@ -584,6 +585,7 @@ def setup_process_logging(accelerator: Accelerator) -> None:
 
 
 def run(args) -> None:
+    apply_num_threads(args.num_threads)
     mixed = args.mixed_precision
     if mixed == "auto":
         mixed = "bf16" if torch.cuda.is_available() else "no"

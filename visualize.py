@@ -22,7 +22,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from PIL import Image, ImageDraw, ImageFont
 
-from common.cli import add_device_arg, resolve_device, setup_logging
+from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import WriteError
 from common.files import atomic_file
@@ -64,6 +64,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="label each frame with its values of the action stream actions/<NAME>.bin of the token "
                              "dir (e.g. latent_action)")
     add_device_arg(parser, help="torch device for decoding: auto (cuda when available, else cpu), cpu, cuda or cuda:N")
+    add_num_threads_arg(parser)
     parser.add_argument("--batch_size", type=int, default=16, help="frames decoded per forward pass")
     parser.add_argument("--allow_unsafe_pickle", action="store_true",
                         help="let torch.load run code from a .ckpt that weights_only loading refuses "
@@ -277,6 +278,7 @@ def visualize_frames(model: VQModel, tokens: np.ndarray, out_dir: Path, offset: 
 def main(argv=None) -> None:
     setup_logging()
     args = parse_args(argv)
+    apply_num_threads(args.num_threads)
     try:
         dataset = RawTokenDataset(args.token_dir, window_size=1, filter_interrupts=False)
         tokens, metadata = dataset.data, dataset.metadata

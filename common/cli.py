@@ -127,10 +127,19 @@ def check_stall_ratio(parser, stall_ratio, num_prompt_frames: int) -> None:
                      f">= 2, got {num_prompt_frames}")
 
 
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
 def add_num_threads_arg(parser) -> None:
-    parser.add_argument("--num_threads", type=int, default=0,
-                        help="CPU threads for torch (0: torch's default); 1 gives steadier, often faster runs of "
-                             "small models on a busy shared machine")
+    parser.add_argument("--num_threads", type=non_negative_int, default=0,
+                        help="CPU threads for torch (0: torch's default, one per core); 1 gives steadier, often "
+                             "faster runs of small models on a busy shared machine, e.g. two runs side by side on "
+                             "two cores")
 
 
 def apply_num_threads(num_threads: int) -> None:

@@ -28,8 +28,8 @@ import torch
 from einops import rearrange
 from tqdm.auto import tqdm
 
-from common.cli import (add_device_arg, add_stall_ratio_arg, add_token_choice_args, check_stall_ratio, resolve_device,
-                        setup_logging)
+from common.cli import (add_device_arg, add_num_threads_arg, add_stall_ratio_arg, add_token_choice_args,
+                        apply_num_threads, check_stall_ratio, resolve_device, setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
@@ -81,6 +81,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
                    help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
     add_device_arg(p)
+    add_num_threads_arg(p)
     p.add_argument("--seed", type=int, default=0, help="Seed of the sampling randomness.")
     args = p.parse_args(argv)
     for name in ("window_size", "stride", "num_examples", "example_stride", "batch_size", "maskgit_steps"):
@@ -203,6 +204,7 @@ def played_latent_actions(latent_BT: torch.Tensor, args, K: int) -> torch.Tensor
 def generate(args) -> dict:
     """Run generation; returns the metadata written."""
     device = resolve_device(args.device)
+    apply_num_threads(args.num_threads)
     model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device)
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride)
     check_compatible(model, dataset, args)

@@ -133,6 +133,8 @@ def main(argv=None):
         sidecar = label(args)
     except WriteError as e:  # full disk / I/O error: one line instead of a traceback
         raise SystemExit(f"error: {e}") from None
+    except (OSError, KeyError, ValueError) as e:  # bad or missing inputs: the message names the file
+        raise SystemExit(f"lam.label: error: {e.args[0] if isinstance(e, KeyError) else e}") from None
     logger.info("wrote %s/actions/%s.bin: %s", args.token_dir, ACTION_NAME,
                 {k: v for k, v in sidecar.items() if k.startswith("num")})
 

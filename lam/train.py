@@ -206,6 +206,8 @@ def main(argv=None):
         metrics = train(parse_args(argv))
     except WriteError as e:  # full disk / I/O error: one line instead of a traceback
         raise SystemExit(f"error: {e}") from None
+    except (OSError, KeyError, ValueError) as e:  # bad or missing inputs: the message names the file
+        raise SystemExit(f"lam.train: error: {e.args[0] if isinstance(e, KeyError) else e}") from None
     print(json.dumps(metrics))
 
 

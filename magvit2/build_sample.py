@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.cli import add_device_arg, add_hidden_alias, resolve_device
+from common.cli import add_device_arg, add_hidden_alias, add_num_threads_arg, apply_num_threads, resolve_device
 from data.sample_world import (MAP_NAMES_HELP, TRAIN_MAPS, VAL_MAPS, WorldConfig, build_sample_world, mirror_split,
                                save_split)
 from magvit2.model import VQModel
@@ -134,6 +134,7 @@ def parse_args(argv=None):
                    help="frames per encoder batch when tokenizing (small batches stay in the CPU's caches: 8 encodes "
                         "the 64x64 frames 1.5x faster than 256 on 2 cores, with the same tokens)")
     add_device_arg(p)
+    add_num_threads_arg(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild every step even if outputs exist")
     args = p.parse_args(argv)
     for name in ("turn_speed", "walk_speed"):
@@ -146,6 +147,7 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
+    apply_num_threads(args.num_threads)
     out = Path(args.output_dir)
     raw = out / "raw"
     build_sample_world(raw, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,

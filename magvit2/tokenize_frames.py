@@ -22,7 +22,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from common.cli import add_device_arg, resolve_device, setup_logging
+from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import WriteError
 from data import TokenDatasetError, TokenDatasetWriter
@@ -285,6 +285,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--batch_size", type=int, default=32, help="frames encoded per forward pass")
     add_device_arg(parser, help="torch device for the encoder: auto (cuda when available, else cpu), cpu, cuda or "
                                 "cuda:N")
+    add_num_threads_arg(parser)
     parser.add_argument("--hz", type=float, default=None,
                         help=f"frame rate written to metadata (default: the inputs' hz, else {DEFAULT_HZ})")
     parser.add_argument("--image_size", type=int, default=None,
@@ -308,6 +309,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> None:
     setup_logging()
     args = parse_args(argv)
+    apply_num_threads(args.num_threads)
     try:
         episodes = describe_inputs(args.inputs)
         output_dir = Path(args.output_dir)

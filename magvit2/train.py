@@ -43,7 +43,8 @@ from safetensors.torch import load_file, save_file
 from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
-from common.cli import add_device_arg, add_hidden_alias, resolve_device, setup_logging
+from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_num_threads, resolve_device,
+                        setup_logging)
 from common.errors import TrainingError, WriteError, writing
 from common.files import remove_stale_temp_dirs, write_json_atomic
 from common.integrity import verify_manifest
@@ -575,6 +576,7 @@ class Trainer:
 
 def run(args) -> Dict[str, float]:
     """Train as configured by `args` (see parse_args); returns the final metrics (also in eval_results.json)."""
+    apply_num_threads(args.num_threads)
     return Trainer(args).fit()
 
 
@@ -638,6 +640,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--ema_decay", type=float, default=0.999, help="Decay of the EMA weights that get exported.")
     g.add_argument("--seed", type=int, default=0, help="Seed of initialization, data order and augmentation.")
     add_device_arg(g, choices=("auto", "cpu", "cuda"), help="auto: CUDA when available, else CPU.")
+    add_num_threads_arg(g)
     g.add_argument("--mixed_precision", default="auto", choices=("auto", "no", "bf16"),
                    help="auto: bf16 autocast on CUDA, fp32 on CPU. bf16 on a CPU with AVX512-BF16/AMX is ~1.6x faster.")
     g.add_argument("--channels_last", action="store_true",

@@ -1,5 +1,6 @@
 """common/cli.py: the shared --device / --num_threads flags, hidden aliases of renamed flags, one log format."""
 import argparse
+import importlib
 
 import pytest
 import torch
@@ -64,3 +65,42 @@ def test_cpu_has_native_bf16_reads_the_feature_flags(tmp_path, text, expected):
 
 def test_cpu_has_native_bf16_is_unknown_without_cpuinfo(tmp_path):
     assert cpu_has_native_bf16(str(tmp_path / "missing")) is None
+
+
+# every script that trains, evaluates, generates, tokenizes or decodes, with the least argv its parser accepts
+THREADED_SCRIPTS = [
+    ("train", []),
+    ("evaluate", []),
+    ("genie.generate", []),
+    ("visualize", ["--token_dir", "tokens"]),
+    ("magvit2.tokenize_frames", ["frames.npz", "--tokenizer_ckpt", "tok", "--output_dir", "out"]),
+    ("magvit2.build_sample", []),
+    ("magvit2.train", ["--train_data", "x.npz", "--output_dir", "o"]),
+    ("lam.train", ["--train_data", "x.npz", "--output_dir", "o"]),
+    ("lam.label", ["--lam_dir", "lam", "--frames", "x.npz", "--token_dir", "tokens"]),
+]
+
+
+@pytest.mark.parametrize("module, argv", THREADED_SCRIPTS, ids=[m for m, _ in THREADED_SCRIPTS])
+def test_every_torch_script_takes_num_threads(module, argv, capsys):
+    parse_args = importlib.import_module(module).parse_args
+    assert parse_args(argv).num_threads == 0  # torch's own default
+    assert parse_args([*argv, "--num_threads", "1"]).num_threads == 1
+    with pytest.raises(SystemExit):
+        parse_args([*argv, "--num_threads", "-2"])
+    assert "argument --num_threads: must be 0 or more, got -2" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("module, argv", [s for s in THREADED_SCRIPTS if s[0] != "magvit2.build_sample"],
+                         ids=[m for m, _ in THREADED_SCRIPTS if m != "magvit2.build_sample"])
+def test_every_torch_script_applies_num_threads_before_its_inputs(module, argv, tmp_path, monkeypatch):
+    """The count is set before anything is read: here every input is missing, so the script stops with its error
+    (build_sample is left out: with nothing built yet it would start rendering)."""
+    calls = []
+    monkeypatch.setattr(torch, "set_num_threads", calls.append)
+    monkeypatch.chdir(tmp_path)  # the relative inputs above and the scripts' defaults do not exist here
+    with pytest.raises(SystemExit) as stop:
+        code = importlib.import_module(module).main([*argv, "--num_threads", "3"])
+        raise SystemExit(code)  # evaluate.py returns its exit status
+    assert stop.value.code not in (0, None)
+    assert calls == [3]

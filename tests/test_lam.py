@@ -265,10 +265,14 @@ def test_train_lam_cli(tmp_path):
 
 def test_train_lam_rejects_bad_data(tmp_path):
     np.savez(tmp_path / "bad.npz", frames=np.zeros((4, 16, 16, 3), dtype=np.float32), segment_ids=np.zeros(4))
-    with pytest.raises(ValueError, match="bad.npz.*uint8"):
+    # one line naming the file, not a traceback
+    with pytest.raises(SystemExit, match="^lam.train: error: .*bad.npz.*uint8"):
         train_lam.main(["--train_data", str(tmp_path / "bad.npz"), "--val_data", str(tmp_path / "bad.npz")])
-    with pytest.raises(FileNotFoundError, match="missing.npz"):
+    with pytest.raises(SystemExit, match="^lam.train: error: frames file not found: .*missing.npz"):
         train_lam.main(["--train_data", str(tmp_path / "missing.npz")])
+    np.savez(tmp_path / "no_segments.npz", frames=np.zeros((4, 16, 16, 3), dtype=np.uint8))
+    with pytest.raises(SystemExit, match=r"^lam.train: error: .*no_segments.npz: missing array\(s\) \['segment_ids'\]"):
+        train_lam.main(["--train_data", str(tmp_path / "no_segments.npz")])
 
 
 def test_label_latent_actions_cli(tmp_path):
@@ -301,6 +305,9 @@ def test_label_latent_actions_cli(tmp_path):
     assert json.loads((token_dir / "metadata.json").read_text())["num_images"] == n  # left untouched
 
     (token_dir / "metadata.json").write_text(json.dumps({"num_images": n + 1}))
-    with pytest.raises(ValueError, match="num_images"):
+    with pytest.raises(SystemExit, match="^lam.label: error: .*metadata.json: num_images"):
         label_latent_actions.main(["--lam_dir", str(tmp_path / "lam"), "--frames", str(tmp_path / "frames.npz"),
+                                   "--token_dir", str(token_dir)])
+    with pytest.raises(SystemExit, match="^lam.label: error: LAM checkpoint directory not found: .*no_lam"):
+        label_latent_actions.main(["--lam_dir", str(tmp_path / "no_lam"), "--frames", str(tmp_path / "frames.npz"),
                                    "--token_dir", str(token_dir)])
