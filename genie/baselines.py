@@ -20,7 +20,8 @@ import math
 import numpy as np
 import torch
 
-from data import RawTokenDataset
+from common.errors import DataMismatchError
+from data import RawTokenDataset, TokenDatasetError
 from genie.factorization import factorize_token_ids
 
 
@@ -94,7 +95,7 @@ def lookup_baselines(train: RawTokenDataset, val: RawTokenDataset, num_factors: 
             "factored_lookup_acc": float((pred_factored == next_va).sum() / n)}
 
 
-def main(argv=None):
+def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--train_data_dir", default="data/sample/train", help="split used to fit p")
     parser.add_argument("--val_data_dir", default="data/sample/val", help="split the baselines are measured on")
@@ -105,15 +106,44 @@ def main(argv=None):
                         help="training windows (non-overlapping) used to fit p and the lookup tables")
     parser.add_argument("--max_examples", type=int, default=None, help="validation windows to use (default: all)")
     args = parser.parse_args(argv)
+    for name in ("window_size", "stride", "num_factored_vocabs", "max_train_windows", "max_examples"):
+        value = getattr(args, name)
+        if value is not None and value < (2 if name == "window_size" else 1):
+            parser.error(f"--{name} must be at least {2 if name == 'window_size' else 1}, got {value}")
+    return args
 
+
+def factor_size_of(train: RawTokenDataset, val: RawTokenDataset, num_factored_vocabs: int) -> int:
+    """The factored vocabulary size V of both splits (V ** F = vocab_size); errors name the split that differs."""
+    vocab_size = val.vocab_size
+    if train.vocab_size != vocab_size:
+        raise DataMismatchError(f"{train.data_dir}: vocab_size {train.vocab_size} differs from {val.data_dir}'s "
+                                f"{vocab_size}; the baselines need two splits of one tokenizer")
+    factor_size = round(vocab_size ** (1 / num_factored_vocabs))
+    if factor_size ** num_factored_vocabs != vocab_size:
+        raise DataMismatchError(f"{val.data_dir}: vocab_size {vocab_size} is not a power of "
+                                f"--num_factored_vocabs {num_factored_vocabs}; no factored vocabulary fits it")
+    return factor_size
+
+
+def run(args: argparse.Namespace) -> dict:
     train = RawTokenDataset(args.train_data_dir, args.window_size, args.stride, filter_overlaps=True)
     val = RawTokenDataset(args.val_data_dir, args.window_size, args.stride, filter_overlaps=True)
-    factor_size = round(val.vocab_size ** (1 / args.num_factored_vocabs))
+    factor_size = factor_size_of(train, val, args.num_factored_vocabs)
     p = factor_match_rate(train, args.num_factored_vocabs, factor_size, args.max_train_windows)
     result = copy_baseline(val, p, args.num_factored_vocabs, factor_size, args.max_examples)
     result.update(lookup_baselines(train, val, args.num_factored_vocabs, factor_size, args.max_train_windows,
                                    args.max_examples))
     result["num_examples"] = min(len(val), args.max_examples or len(val))
+    return result
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    try:
+        result = run(args)
+    except (TokenDatasetError, DataMismatchError, OSError) as e:  # one line naming the file, not a traceback
+        raise SystemExit(f"genie.baselines: error: {e}") from None
     print(json.dumps(result))
 
 

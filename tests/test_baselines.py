@@ -3,6 +3,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from data import RawTokenDataset, write_token_dataset
 from genie.baselines import copy_baseline, factor_match_rate, lookup_baselines, main
@@ -79,3 +80,19 @@ def test_lookup_baselines_pick_joint_and_factorwise_successors(tmp_path):
 def _write(path, frames_NHW):
     write_token_dataset(path, frames_NHW, metadata={"vocab_size": 16, "hz": 35})
     return path
+
+
+def test_cli_names_the_bad_input_in_one_line(tmp_path):
+    frames = np.random.default_rng(1).integers(0, 16, size=(12, 2, 2))
+    _dataset(tmp_path / "t", frames)
+    args = ["--window_size", "3", "--stride", "1"]
+    with pytest.raises(SystemExit, match="^genie.baselines: error: .*missing: token dataset directory not found"):
+        main(["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "missing"), *args])
+    write_token_dataset(tmp_path / "v64", frames, metadata={"vocab_size": 64, "hz": 35})
+    with pytest.raises(SystemExit, match="t: vocab_size 16 differs from .*v64's 64"):
+        main(["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "v64"), *args])
+    write_token_dataset(tmp_path / "t12", frames % 12, metadata={"vocab_size": 12, "hz": 35})
+    with pytest.raises(SystemExit, match="t12: vocab_size 12 is not a power of --num_factored_vocabs 2"):
+        main(["--train_data_dir", str(tmp_path / "t12"), "--val_data_dir", str(tmp_path / "t12"), *args])
+    with pytest.raises(SystemExit):
+        main(["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "t"), "--max_examples", "0"])
