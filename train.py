@@ -51,6 +51,7 @@ from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
 from genie.actions import action_statistics, latent_action_sidecar, prepare_action_streams, stream_dims
 from genie.checkpoint import load_state_dict_checked
+from genie.compile import compile_for_training
 from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
 from genie.masking import MaskGITBatch, get_maskgit_collator
 from genie.model import STMaskGIT
@@ -145,7 +146,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "AMX) trains faster than fp32 (benchmarks/bench_train.py --mixed_precision compare); on "
                         "other CPUs it is emulated and slow (a warning says so when the CPU's flags lack it).")
     add_num_threads_arg(g)
-    g.add_argument("--compile", action="store_true", help="torch.compile the model on CPU too (default: CUDA only).")
+    g.add_argument("--compile", action="store_true",
+                   help="torch.compile on the CPU too (default: CUDA only, the whole model). On the CPU the transformer "
+                        "blocks are compiled (needs a C++ compiler; about a minute or two before the first steps).")
     g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
     g.add_argument("--gradient_checkpointing", action="store_true",
                    help="Recompute each transformer block in the backward pass instead of keeping its activations: "
@@ -336,7 +339,7 @@ class Trainer:
         self.resume()
         self.ddp_model, self.ddp_optimizer = accelerator.prepare(self.model, self.optimizer)
         if self.use_compile():
-            self.ddp_model = torch.compile(self.ddp_model)
+            self.ddp_model = compile_for_training(self.ddp_model, self.model, self.device)
 
     def use_compile(self) -> bool:
         return not self.args.no_compile and (self.args.compile or self.device.type == "cuda")

@@ -23,6 +23,7 @@ from common.cli import (NO_NATIVE_BF16, add_device_arg, add_num_threads_arg, app
                         resolve_device)
 from common.muon import build_optimizer
 from genie.actions import LATENT_ACTION_NAME
+from genie.compile import compile_for_training
 from genie.masking import get_maskgit_collator
 from genie.attention import set_cpu_bf16_math
 from genie.config import GenieConfig, TrainingRecipe
@@ -61,7 +62,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "logits of every token, as published; compare: full, then masked, with the ratio.")
     p.add_argument("--optimizer", default="adamw", choices=("adamw", "muon", "compare"),
                    help="The optimizer train.py builds with --optimizer adamw / muon; compare: both, with the ratio.")
-    p.add_argument("--compile", action="store_true", help="torch.compile the model.")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the model as train.py --compile does (on the CPU: its transformer blocks).")
     add_num_threads_arg(p)
     p.add_argument("--profile", action="store_true", help="Print the top operators of one profiled step.")
     return p.parse_args(argv)
@@ -124,7 +126,7 @@ def measure(args, device, mixed_precision: str, math_path: bool, full_readout: b
     """Seconds per optimizer step (wall) of a freshly built model; prints one line."""
     config, recipe, model, optimizer, windows = build(args, device, optimizer_name)
     set_cpu_bf16_math(model, math_path)
-    compiled = torch.compile(model) if args.compile else model
+    compiled = compile_for_training(model, model, device) if args.compile else model  # as train.py compiles
     step = make_step(compiled, optimizer, get_maskgit_collator(config, recipe, seed=0), windows, device,
                      mixed_precision, full_readout, recipe)
     for _ in range(args.warmup_steps):

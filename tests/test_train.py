@@ -1,6 +1,7 @@
 """train.py on CPU with a tiny model: learning, checkpoints (round trip, in-process resume), data order, errors."""
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -8,10 +9,12 @@ import torch
 from accelerate.state import AcceleratorState
 from safetensors.torch import load_file
 
+import genie.compile
 import train
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, write_token_dataset
 from genie import GenieConfig, STMaskGIT
+from genie.compile import CPU_COMPILERS
 from genie.masking import get_maskgit_collator
 from genie.reference import full_logits_loss
 from common.train_state import (COMPLETE_MARKER, ResumableBatchSampler, list_checkpoints,
@@ -97,6 +100,28 @@ def test_gradient_checkpointing_trains_the_same_weights(tiny_data, tmp_path):
     assert plain.keys() == recomputed.keys()
     for k in plain:
         torch.testing.assert_close(recomputed[k], plain[k], atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.skipif(not any(shutil.which(c) for c in CPU_COMPILERS), reason="no C++ compiler for inductor")
+def test_compile_on_the_cpu_trains_the_same_weights(tiny_data, tmp_path):
+    """--compile on the CPU compiles the transformer blocks in place (a whole-model compile of a model with the
+    pointer stops at torch 2.13's C++ code generation): same parameter names, and weights within float rounding of
+    an eager run's."""
+    config = write_config(tmp_path / "pointer.json", copy_radius=1, copy_match_input=True)
+    data = {**tiny_data, "config": config}
+    steps = ("--max_train_steps", "2", "--checkpointing_steps", "0")
+    train.main(train_argv(data, tmp_path / "eager", *steps))
+    train.main(train_argv(data, tmp_path / "compiled", *steps, "--compile"))
+    eager, compiled = (load_weights(tmp_path / run / "final_checkpt") for run in ("eager", "compiled"))
+    assert eager.keys() == compiled.keys()
+    for k in eager:
+        torch.testing.assert_close(compiled[k], eager[k], atol=1e-5, rtol=1e-4)
+
+
+def test_compile_on_the_cpu_without_a_compiler_is_a_clear_error(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setattr(genie.compile.shutil, "which", lambda name: None)
+    with pytest.raises(SystemExit, match="--compile on the CPU needs a C\\+\\+ compiler"):
+        train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "1", "--compile"))
 
 
 def test_two_stream_training_lowers_the_teacher_forced_loss(tiny_data, tmp_path):
