@@ -148,7 +148,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     add_num_threads_arg(g)
     g.add_argument("--compile", action="store_true",
                    help="torch.compile on the CPU too (default: CUDA only, the whole model). On the CPU the transformer "
-                        "blocks are compiled (needs a C++ compiler; about a minute or two before the first steps).")
+                        "blocks are compiled (needs a C++ compiler; a minute or two before the first steps), which "
+                        "trains the CPU default's small model no faster (benchmarks/bench_train.py --compile).")
     g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
     g.add_argument("--gradient_checkpointing", action="store_true",
                    help="Recompute each transformer block in the backward pass instead of keeping its activations: "
