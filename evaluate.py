@@ -80,7 +80,7 @@ from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
 from common.cli import (add_device_arg, add_num_threads_arg, add_stall_ratio_arg, add_token_choice_args,
-                        apply_num_threads, check_stall_ratio, resolve_device, setup_logging)
+                        apply_num_threads, check_stall_ratio, finite_float, resolve_device, setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError, writing
 from common.files import atomic_file
@@ -149,9 +149,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "such as 1x-technologies/GENIE_35M (not read by --protocol copy_ceiling).")
     parser.add_argument("--batch_size", type=int, default=16, help="Windows per forward pass.")
     parser.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT sampling steps per frame.")
-    parser.add_argument("--temperature", type=float, default=0.0,
+    parser.add_argument("--temperature", type=finite_float, default=0.0,
                         help="Sampling temperature (divides the logits); 0 samples greedily (argmax).")
-    parser.add_argument("--copy_bias", type=float, default=0.0,
+    parser.add_argument("--copy_bias", type=finite_float, default=0.0,
                         help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
                              "when sampling (e^bias times the copy weight). > 0 gives sharper futures closer to "
                              "the previous frame (better LPIPS, lower PSNR); 0 is the model as trained.")

@@ -45,7 +45,8 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
-from common.cli import NO_NATIVE_BF16, add_num_threads_arg, apply_num_threads, cpu_has_native_bf16, setup_logging
+from common.cli import (NO_NATIVE_BF16, add_num_threads_arg, apply_num_threads, check_optimizer_args,
+                        cpu_has_native_bf16, finite_float, setup_logging)
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
@@ -118,20 +119,20 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="adamw, or muon: Muon steps (orthogonalized momentum, scaled to AdamW's step size) for the "
                         "transformer's hidden matrices and AdamW for embeddings, heads, biases and norms, with the "
                         "same learning rate, schedule and weight decay (common/muon.py).")
-    g.add_argument("--muon_momentum", type=float, default=0.95, help="Muon's (Nesterov) momentum.")
-    g.add_argument("--learning_rate", type=float, default=1e-4, help="Peak learning rate (AdamW, and Muon's).")
-    g.add_argument("--weight_decay", type=float, default=0.0,
+    g.add_argument("--muon_momentum", type=finite_float, default=0.95, help="Muon's (Nesterov) momentum.")
+    g.add_argument("--learning_rate", type=finite_float, default=1e-4, help="Peak learning rate (AdamW, and Muon's).")
+    g.add_argument("--weight_decay", type=finite_float, default=0.0,
                    help="Decoupled weight decay (matrices and embeddings only).")
-    g.add_argument("--adam_beta_1", type=float, default=0.9, help="AdamW beta1.")
-    g.add_argument("--adam_beta_2", type=float, default=0.999, help="AdamW beta2.")
-    g.add_argument("--adam_eps", type=float, default=1e-8, help="AdamW epsilon.")
+    g.add_argument("--adam_beta_1", type=finite_float, default=0.9, help="AdamW beta1.")
+    g.add_argument("--adam_beta_2", type=finite_float, default=0.999, help="AdamW beta2.")
+    g.add_argument("--adam_eps", type=finite_float, default=1e-8, help="AdamW epsilon.")
     g.add_argument("--lr_scheduler_type", default="linear", choices=LR_SCHEDULES,
                    help="Learning-rate schedule over --max_train_steps (custom_cosine: warmup, then cosine to 10%%).")
     g.add_argument("--num_warmup_steps", type=int, default=0, help="Linear warmup steps (optimizer steps).")
     g.add_argument("--max_train_steps", type=int, default=None,
                    help="Optimizer steps to train; overrides --num_train_epochs.")
     g.add_argument("--num_train_epochs", type=int, default=1, help="Epochs to train when --max_train_steps is unset.")
-    g.add_argument("--max_grad_norm", type=float, default=1.0, help="Gradient clipping norm (<= 0: no clipping).")
+    g.add_argument("--max_grad_norm", type=finite_float, default=1.0, help="Gradient clipping norm (<= 0: no clipping).")
     g.add_argument("--max_nonfinite_steps", type=int, default=5,
                    help="Stop (after saving a checkpoint) when this many steps in a row have a NaN/inf loss or "
                         "gradient; each one is skipped with a warning.")
@@ -181,6 +182,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  "gradient_accumulation_steps", "max_nonfinite_steps"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    check_optimizer_args(p, args, rates=("learning_rate", "adam_eps"),
+                         betas=("adam_beta_1", "adam_beta_2", "muon_momentum"))
     if args.max_diverged_steps < 0:
         p.error(f"--max_diverged_steps must be >= 0, got {args.max_diverged_steps}")
     if args.max_train_steps is not None and args.max_train_steps < 0:

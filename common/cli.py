@@ -1,6 +1,7 @@
 """Command-line helpers shared by every script: the --device and --num_threads flags, and one logging set-up."""
 import argparse
 import logging
+import math
 from pathlib import Path
 
 import torch
@@ -125,6 +126,31 @@ def check_stall_ratio(parser, stall_ratio, num_prompt_frames: int) -> None:
     if stall_ratio is not None and num_prompt_frames < 2:
         parser.error(f"--stall_ratio compares generated frames with the prompt's motion: it needs --num_prompt_frames "
                      f">= 2, got {num_prompt_frames}")
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (not nan or inf, which would otherwise surface as a traceback from deep inside
+    torch, or as silently meaningless results)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
+def check_optimizer_args(parser, args, rates=("learning_rate",), betas=()) -> None:
+    """parser.error unless every learning rate in `rates` (None: unset) is > 0, --weight_decay >= 0 and every
+    momentum-like coefficient in `betas` is in [0, 1): the optimizers' own checks would stop with a traceback."""
+    for name in rates:
+        if getattr(args, name) is not None and getattr(args, name) <= 0:
+            parser.error(f"--{name} must be > 0, got {getattr(args, name)}")
+    if args.weight_decay < 0:
+        parser.error(f"--weight_decay must be >= 0, got {args.weight_decay}")
+    for name in betas:
+        if not 0 <= getattr(args, name) < 1:
+            parser.error(f"--{name} must be in [0, 1), got {getattr(args, name)}")
 
 
 def non_negative_int(text: str) -> int:

@@ -29,7 +29,7 @@ from einops import rearrange
 from tqdm.auto import tqdm
 
 from common.cli import (add_device_arg, add_num_threads_arg, add_stall_ratio_arg, add_token_choice_args,
-                        apply_num_threads, check_stall_ratio, resolve_device, setup_logging)
+                        apply_num_threads, check_stall_ratio, finite_float, resolve_device, setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
@@ -71,8 +71,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="Control mode: condition the generated frames on the dataset's own actions (real and, "
                         "unless --latent_actions is given, latent) instead of only the prompt's.")
     p.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT decoding steps per frame.")
-    p.add_argument("--temperature", type=float, default=0.0, help="Sampling temperature; 0 samples greedily.")
-    p.add_argument("--copy_bias", type=float, default=0.0,
+    p.add_argument("--temperature", type=finite_float, default=0.0, help="Sampling temperature; 0 samples greedily.")
+    p.add_argument("--copy_bias", type=finite_float, default=0.0,
                    help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
                         "(e^bias times the copy weight). > 0 gives sharper futures closer to the previous frame; "
                         "0 is the model as trained.")

@@ -24,7 +24,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
+from common.cli import (add_device_arg, add_num_threads_arg, apply_num_threads, check_optimizer_args, finite_float,
+                        resolve_device, setup_logging)
 from common.config import load_json
 from common.errors import WriteError
 from common.files import write_json_atomic
@@ -55,10 +56,10 @@ def parse_args(argv=None):
     p.add_argument("--channels", default=None, help="comma-separated conv widths per level (default 16,32,64)")
     p.add_argument("--max_train_steps", type=int, default=1200, help="optimizer steps")
     p.add_argument("--batch_size", type=int, default=32, help="transitions per step")
-    p.add_argument("--learning_rate", type=float, default=1e-3, help="peak AdamW learning rate")
-    p.add_argument("--weight_decay", type=float, default=0.0, help="AdamW weight decay")
+    p.add_argument("--learning_rate", type=finite_float, default=1e-3, help="peak AdamW learning rate")
+    p.add_argument("--weight_decay", type=finite_float, default=0.0, help="AdamW weight decay")
     p.add_argument("--warmup_steps", type=int, default=50, help="linear warm-up steps; cosine decay to 10%% after")
-    p.add_argument("--max_grad_norm", type=float, default=1.0, help="gradient clipping norm")
+    p.add_argument("--max_grad_norm", type=finite_float, default=1.0, help="gradient clipping norm")
     p.add_argument("--checkpointing_steps", type=int, default=200,
                    help="save the model to OUTPUT_DIR/checkpoint every this many steps (0: never)")
     p.add_argument("--max_eval_examples", type=int, default=2048,
@@ -69,7 +70,9 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=0, help="seed of initialisation, batch sampling and random actions")
     add_device_arg(p)
     add_num_threads_arg(p)
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    check_optimizer_args(p, args)
+    return args
 
 
 def build_config(args, frames_NHWC: np.ndarray) -> LAMConfig:

@@ -43,8 +43,8 @@ from safetensors.torch import load_file, save_file
 from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
-from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_num_threads, resolve_device,
-                        setup_logging)
+from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_num_threads, check_optimizer_args,
+                        finite_float, resolve_device, setup_logging)
 from common.errors import TrainingError, WriteError, writing
 from common.files import remove_stale_temp_dirs, write_json_atomic
 from common.integrity import verify_manifest
@@ -588,7 +588,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "them or of images, or glob patterns (quote them).")
     g.add_argument("--val_data", nargs="+", default=None,
                    help="Held-out frames in the same forms (default: the last --val_fraction of --train_data).")
-    g.add_argument("--val_fraction", type=float, default=0.05,
+    g.add_argument("--val_fraction", type=finite_float, default=0.05,
                    help="Fraction of the training frames held out when --val_data is not given (0: none).")
     g.add_argument("--max_eval_frames", type=int, default=256,
                    help="Evenly spaced held-out frames used by each evaluation.")
@@ -627,17 +627,17 @@ def parse_args(argv=None) -> argparse.Namespace:
 
     g = p.add_argument_group("optimization")
     g.add_argument("--batch_size", type=int, default=16, help="Frames per process per step.")
-    g.add_argument("--learning_rate", type=float, default=1e-4, help="Tokenizer AdamW learning rate.")
-    g.add_argument("--disc_learning_rate", type=float, default=None,
+    g.add_argument("--learning_rate", type=finite_float, default=1e-4, help="Tokenizer AdamW learning rate.")
+    g.add_argument("--disc_learning_rate", type=finite_float, default=None,
                    help="Discriminator AdamW learning rate (default: --learning_rate).")
-    g.add_argument("--adam_beta_1", type=float, default=0.5, help="AdamW beta1 (0.5 as in GAN tokenizer training).")
-    g.add_argument("--adam_beta_2", type=float, default=0.9, help="AdamW beta2.")
-    add_hidden_alias(g, "--adam_beta1", "adam_beta_1", type=float)  # the spelling before train.py's was adopted
-    add_hidden_alias(g, "--adam_beta2", "adam_beta_2", type=float)
-    g.add_argument("--weight_decay", type=float, default=0.0, help="AdamW weight decay.")
-    g.add_argument("--max_grad_norm", type=float, default=1.0, help="Gradient clipping norm (<= 0: none).")
+    g.add_argument("--adam_beta_1", type=finite_float, default=0.5, help="AdamW beta1 (0.5 as in GAN tokenizer training).")
+    g.add_argument("--adam_beta_2", type=finite_float, default=0.9, help="AdamW beta2.")
+    add_hidden_alias(g, "--adam_beta1", "adam_beta_1", type=finite_float)  # the spelling before train.py's was adopted
+    add_hidden_alias(g, "--adam_beta2", "adam_beta_2", type=finite_float)
+    g.add_argument("--weight_decay", type=finite_float, default=0.0, help="AdamW weight decay.")
+    g.add_argument("--max_grad_norm", type=finite_float, default=1.0, help="Gradient clipping norm (<= 0: none).")
     g.add_argument("--max_train_steps", type=int, default=1000, help="Total optimizer steps.")
-    g.add_argument("--ema_decay", type=float, default=0.999, help="Decay of the EMA weights that get exported.")
+    g.add_argument("--ema_decay", type=finite_float, default=0.999, help="Decay of the EMA weights that get exported.")
     g.add_argument("--seed", type=int, default=0, help="Seed of initialization, data order and augmentation.")
     add_device_arg(g, choices=("auto", "cpu", "cuda"), help="auto: CUDA when available, else CPU.")
     add_num_threads_arg(g)
@@ -668,6 +668,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error(f"--val_fraction must be in [0, 1), got {args.val_fraction}")
     if not 0.0 <= args.ema_decay < 1.0:
         p.error(f"--ema_decay must be in [0, 1), got {args.ema_decay}")
+    check_optimizer_args(p, args, rates=("learning_rate", "disc_learning_rate"), betas=("adam_beta_1", "adam_beta_2"))
     return args
 
 

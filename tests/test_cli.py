@@ -104,3 +104,36 @@ def test_every_torch_script_applies_num_threads_before_its_inputs(module, argv, 
         raise SystemExit(code)  # evaluate.py returns its exit status
     assert stop.value.code not in (0, None)
     assert calls == [3]
+
+
+@pytest.mark.parametrize("module, argv, flag", [
+    ("train", [], "--learning_rate"), ("train", [], "--weight_decay"), ("evaluate", [], "--temperature"),
+    ("genie.generate", [], "--copy_bias"), ("lam.train", ["--train_data", "x.npz"], "--max_grad_norm"),
+    ("magvit2.train", ["--train_data", "x.npz", "--output_dir", "o"], "--learning_rate"),
+])
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_float_flags_reject_nan_and_inf(module, argv, flag, value, capsys):
+    """nan or inf would surface as a traceback from deep inside torch (an optimizer's "Invalid learning rate",
+    a sampler's "probability tensor contains nan"), or as meaningless numbers."""
+    with pytest.raises(SystemExit):
+        importlib.import_module(module).parse_args([*argv, f"{flag}={value}"])  # "=": "-inf" is not an option
+    assert f"argument {flag}: must be a finite number, got {value}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("module, argv, flags, message", [
+    ("train", [], ["--learning_rate", "0"], "--learning_rate must be > 0, got 0.0"),
+    ("train", [], ["--adam_eps=-1e-8"], "--adam_eps must be > 0, got -1e-08"),
+    ("train", [], ["--weight_decay=-0.1"], "--weight_decay must be >= 0, got -0.1"),
+    ("train", [], ["--adam_beta_2", "1"], "--adam_beta_2 must be in [0, 1), got 1.0"),
+    ("train", [], ["--muon_momentum=-0.5"], "--muon_momentum must be in [0, 1), got -0.5"),
+    ("lam.train", [], ["--learning_rate=-1"], "--learning_rate must be > 0, got -1.0"),
+    ("magvit2.train", ["--train_data", "x.npz", "--output_dir", "o"], ["--disc_learning_rate", "0"],
+     "--disc_learning_rate must be > 0, got 0.0"),
+    ("magvit2.train", ["--train_data", "x.npz", "--output_dir", "o"], ["--adam_beta_1", "1.5"],
+     "--adam_beta_1 must be in [0, 1), got 1.5"),
+])
+def test_training_scripts_reject_optimizer_settings_out_of_range(module, argv, flags, message, capsys):
+    """Caught by the parser with the flag's name, not by the optimizer with a traceback."""
+    with pytest.raises(SystemExit):
+        importlib.import_module(module).parse_args([*argv, *flags])
+    assert message in capsys.readouterr().err
