@@ -132,7 +132,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--max_train_steps", type=int, default=None,
                    help="Optimizer steps to train; overrides --num_train_epochs.")
     g.add_argument("--num_train_epochs", type=int, default=1, help="Epochs to train when --max_train_steps is unset.")
-    g.add_argument("--max_grad_norm", type=finite_float, default=1.0, help="Gradient clipping norm (<= 0: no clipping).")
+    g.add_argument("--max_grad_norm", type=finite_float, default=1.0,
+                   help="Gradient clipping norm (<= 0: no clipping).")
     g.add_argument("--max_nonfinite_steps", type=int, default=5,
                    help="Stop (after saving a checkpoint) when this many steps in a row have a NaN/inf loss or "
                         "gradient; each one is skipped with a warning.")
@@ -148,9 +149,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "other CPUs it is emulated and slow (a warning says so when the CPU's flags lack it).")
     add_num_threads_arg(g)
     g.add_argument("--compile", action="store_true",
-                   help="torch.compile on the CPU too (default: CUDA only, the whole model). On the CPU the transformer "
-                        "blocks are compiled (needs a C++ compiler; a minute or two before the first steps), which "
-                        "trains the CPU default's small model no faster (benchmarks/bench_train.py --compile).")
+                   help="torch.compile on the CPU too (default: CUDA only, the whole model). On the CPU the "
+                        "transformer blocks are compiled (needs a C++ compiler; a minute or two before the first "
+                        "steps), which trains the CPU default's small model no faster (benchmarks/bench_train.py "
+                        "--compile).")
     g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
     g.add_argument("--gradient_checkpointing", action="store_true",
                    help="Recompute each transformer block in the backward pass instead of keeping its activations: "

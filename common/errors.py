@@ -57,3 +57,9 @@ def writing(what: str, path):
         if fault is None:
             raise
         raise WriteError(f"could not write {what} to {path}: {fault[1]}", fault[0]) from e
+
+
+def input_error_exit(prog: str, error: Exception) -> SystemExit:
+    """The one-line exit of a script for a bad or missing input (`raise input_error_exit("lam.train", e) from None`):
+    the message already names the file; a KeyError's str() would quote it."""
+    return SystemExit(f"{prog}: error: {error.args[0] if isinstance(error, KeyError) else error}")

@@ -20,7 +20,7 @@ import math
 import numpy as np
 import torch
 
-from common.errors import DataMismatchError
+from common.errors import DataMismatchError, input_error_exit
 from data import RawTokenDataset, TokenDatasetError
 from genie.factorization import factorize_token_ids
 
@@ -106,10 +106,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="training windows (non-overlapping) used to fit p and the lookup tables")
     parser.add_argument("--max_examples", type=int, default=None, help="validation windows to use (default: all)")
     args = parser.parse_args(argv)
-    for name in ("window_size", "stride", "num_factored_vocabs", "max_train_windows", "max_examples"):
+    minimums = {"window_size": 2, "stride": 1, "num_factored_vocabs": 1, "max_train_windows": 1, "max_examples": 1}
+    for name, minimum in minimums.items():
         value = getattr(args, name)
-        if value is not None and value < (2 if name == "window_size" else 1):
-            parser.error(f"--{name} must be at least {2 if name == 'window_size' else 1}, got {value}")
+        if value is not None and value < minimum:
+            parser.error(f"--{name} must be at least {minimum}, got {value}")
     return args
 
 
@@ -143,7 +144,7 @@ def main(argv=None) -> None:
     try:
         result = run(args)
     except (TokenDatasetError, DataMismatchError, OSError) as e:  # one line naming the file, not a traceback
-        raise SystemExit(f"genie.baselines: error: {e}") from None
+        raise input_error_exit("genie.baselines", e) from None
     print(json.dumps(result))
 
 

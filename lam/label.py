@@ -25,7 +25,7 @@ import torch
 
 from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
 from common.config import load_json
-from common.errors import WriteError
+from common.errors import WriteError, input_error_exit
 from common.files import atomic_file
 from common.integrity import read_manifest, update_manifest
 from lam.data import infer_codes, load_frames_npz, valid_targets
@@ -134,7 +134,7 @@ def main(argv=None):
     except WriteError as e:  # full disk / I/O error: one line instead of a traceback
         raise SystemExit(f"error: {e}") from None
     except (OSError, KeyError, ValueError) as e:  # bad or missing inputs: the message names the file
-        raise SystemExit(f"lam.label: error: {e.args[0] if isinstance(e, KeyError) else e}") from None
+        raise input_error_exit("lam.label", e) from None
     logger.info("wrote %s/actions/%s.bin: %s", args.token_dir, ACTION_NAME,
                 {k: v for k, v in sidecar.items() if k.startswith("num")})
 

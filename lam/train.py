@@ -27,7 +27,7 @@ from tqdm import tqdm
 from common.cli import (add_device_arg, add_num_threads_arg, apply_num_threads, check_optimizer_args, finite_float,
                         resolve_device, setup_logging)
 from common.config import load_json
-from common.errors import WriteError
+from common.errors import WriteError, input_error_exit
 from common.files import write_json_atomic
 from common.images import psnr
 from common.schedules import lr_multiplier
@@ -210,7 +210,7 @@ def main(argv=None):
     except WriteError as e:  # full disk / I/O error: one line instead of a traceback
         raise SystemExit(f"error: {e}") from None
     except (OSError, KeyError, ValueError) as e:  # bad or missing inputs: the message names the file
-        raise SystemExit(f"lam.train: error: {e.args[0] if isinstance(e, KeyError) else e}") from None
+        raise input_error_exit("lam.train", e) from None
     print(json.dumps(metrics))
 
 

@@ -630,7 +630,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--learning_rate", type=finite_float, default=1e-4, help="Tokenizer AdamW learning rate.")
     g.add_argument("--disc_learning_rate", type=finite_float, default=None,
                    help="Discriminator AdamW learning rate (default: --learning_rate).")
-    g.add_argument("--adam_beta_1", type=finite_float, default=0.5, help="AdamW beta1 (0.5 as in GAN tokenizer training).")
+    g.add_argument("--adam_beta_1", type=finite_float, default=0.5,
+                   help="AdamW beta1 (0.5 as in GAN tokenizer training).")
     g.add_argument("--adam_beta_2", type=finite_float, default=0.9, help="AdamW beta2.")
     add_hidden_alias(g, "--adam_beta1", "adam_beta_1", type=finite_float)  # the spelling before train.py's was adopted
     add_hidden_alias(g, "--adam_beta2", "adam_beta_2", type=finite_float)

@@ -78,6 +78,12 @@ def assert_same_weights(a, b):
         assert torch.equal(a[k], b[k]), k
 
 
+def assert_close_weights(actual, expected, **tolerance):
+    assert actual.keys() == expected.keys()
+    for k in expected:
+        torch.testing.assert_close(actual[k], expected[k], **tolerance)
+
+
 def test_training_lowers_the_loss(tiny_data, tmp_path):
     train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "30", "--checkpointing_steps", "0"))
     config = GenieConfig.from_pretrained(tiny_data["config"])
@@ -97,9 +103,7 @@ def test_gradient_checkpointing_trains_the_same_weights(tiny_data, tmp_path):
     train.main(train_argv(tiny_data, tmp_path / "plain", *steps))
     train.main(train_argv(tiny_data, tmp_path / "recomputed", *steps, "--gradient_checkpointing"))
     plain, recomputed = (load_weights(tmp_path / run / "final_checkpt") for run in ("plain", "recomputed"))
-    assert plain.keys() == recomputed.keys()
-    for k in plain:
-        torch.testing.assert_close(recomputed[k], plain[k], atol=1e-6, rtol=1e-5)
+    assert_close_weights(recomputed, plain, atol=1e-6, rtol=1e-5)
 
 
 @pytest.mark.skipif(not any(shutil.which(c) for c in CPU_COMPILERS), reason="no C++ compiler for inductor")
@@ -113,9 +117,7 @@ def test_compile_on_the_cpu_trains_the_same_weights(tiny_data, tmp_path):
     train.main(train_argv(data, tmp_path / "eager", *steps))
     train.main(train_argv(data, tmp_path / "compiled", *steps, "--compile"))
     eager, compiled = (load_weights(tmp_path / run / "final_checkpt") for run in ("eager", "compiled"))
-    assert eager.keys() == compiled.keys()
-    for k in eager:
-        torch.testing.assert_close(compiled[k], eager[k], atol=1e-5, rtol=1e-4)
+    assert_close_weights(compiled, eager, atol=1e-5, rtol=1e-4)
 
 
 def test_compile_on_the_cpu_without_a_compiler_is_a_clear_error(tiny_data, tmp_path, monkeypatch):
