@@ -667,9 +667,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error(f"--max_train_steps must be >= 0, got {args.max_train_steps}")
     if not 0.0 <= args.val_fraction < 1.0:
         p.error(f"--val_fraction must be in [0, 1), got {args.val_fraction}")
-    if not 0.0 <= args.ema_decay < 1.0:
-        p.error(f"--ema_decay must be in [0, 1), got {args.ema_decay}")
-    check_optimizer_args(p, args, rates=("learning_rate", "disc_learning_rate"), betas=("adam_beta_1", "adam_beta_2"))
+    check_optimizer_args(p, args, rates=("learning_rate", "disc_learning_rate"),
+                         betas=("adam_beta_1", "adam_beta_2", "ema_decay"))
     return args
 
 
