@@ -21,7 +21,10 @@ adds three keys:
 - delta_psnr (Genie's controllability metric): from each window's first num_prompt_frames frames, the remaining
   frames are generated twice, with the latent actions inferred from the ground truth and with uniformly random
   ones (same seed, same sampling noise); delta_psnr = mean PSNR(inferred, gt) - mean PSNR(random, gt) over the
-  decoded generated frames (null with --skip_lpips: nothing is decoded);
+  decoded generated frames (null with --skip_lpips: nothing is decoded). On a few dozen windows one draw of the
+  sampling noise moves it by tenths of a dB, so --delta_psnr_seeds N repeats it with the sampler seeds --seed,
+  --seed + 1, ..., --seed + N - 1 (each run exactly what --seed alone gives) and reports their mean;
+  delta_psnr_runs lists the N values;
 - action_probe_acc, action_majority_rate: lam/probe.py's probe of the latent action ids against the
   true button combinations (actions/buttons.bin), fitted on --train_data_dir and scored on --val_data_dir (null
   when either lacks buttons.bin or latent_action.bin).
@@ -189,13 +192,17 @@ def parse_args(argv=None) -> argparse.Namespace:
     add_device_arg(parser)
     add_num_threads_arg(parser)
     parser.add_argument("--seed", type=int, default=0, help="Seed of the sampler's random numbers.")
+    parser.add_argument("--delta_psnr_seeds", type=int, default=1,
+                        help="Latent-action checkpoints: compute delta_psnr with this many sampler seeds (--seed, "
+                             "--seed + 1, ...) and report the mean (delta_psnr) and every run (delta_psnr_runs). One "
+                             "draw of the noise moves it by tenths of a dB on a few dozen windows.")
     parser.add_argument("--train_data_dir", default=DEFAULT_TRAIN_DIR,
                         help="Token dataset whose latent actions and buttons fit the latent action probe (checkpoints "
                              "with latent actions only).")
     parser.add_argument("--window_size", type=int, default=16, help="Frames per validation window.")
     parser.add_argument("--stride", type=int, default=15, help="Frames between a window's frames (30 Hz / 15 = 2 Hz).")
     args = parser.parse_args(argv)
-    for name in ("batch_size", "maskgit_steps"):
+    for name in ("batch_size", "maskgit_steps", "delta_psnr_seeds"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1")
     if args.max_examples is not None and args.max_examples < 1:
@@ -511,10 +518,11 @@ def run_copy_ceiling(args: argparse.Namespace, device: torch.device) -> dict:
 
 @torch.no_grad()
 def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
-               scorer: FrameScorer) -> float:
+               scorer: FrameScorer, seed: int) -> float:
     """Genie's delta-PSNR: mean PSNR of frames generated with the ground truth's latent actions minus that with
     uniformly random latent actions, over the frames after the config's num_prompt_frames (see the module doc).
-    Real action inputs, if the model also has them, stay prompt-only in both runs."""
+    Real action inputs, if the model also has them, stay prompt-only in both runs. seed: the sampler's (the random
+    latent actions draw from seed + 1)."""
     P, K = model.config.num_prompt_frames, model.config.num_latent_actions
     if P >= args.window_size:
         raise DataMismatchError(f"delta_psnr: the checkpoint's num_prompt_frames {P} leaves no frame to generate in "
@@ -525,8 +533,8 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
     kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
                   control=True, stall_ratio=args.stall_ratio)
     # same sampling noise in both runs: only the latent actions differ
-    generators = [torch.Generator(device=device).manual_seed(args.seed) for _ in range(2)]
-    random_actions = torch.Generator().manual_seed(args.seed + 1)
+    generators = [torch.Generator(device=device).manual_seed(seed) for _ in range(2)]
+    random_actions = torch.Generator().manual_seed(seed + 1)
     psnrs = [RunningMean(), RunningMean()]
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
@@ -673,7 +681,10 @@ def teacher_forced_result(model: STMaskGIT, loader, dataset: RawTokenDataset, ar
         if model.config.num_latent_actions and not args.withhold_actions:
             if scorer is None:
                 logger.warning("--skip_lpips: nothing is decoded, so delta_psnr is null")
-            result["delta_psnr"] = None if scorer is None else delta_psnr(model, loader, args, device, scorer)
+            runs = None if scorer is None else [delta_psnr(model, loader, args, device, scorer, args.seed + i)
+                                                for i in range(args.delta_psnr_seeds)]
+            result["delta_psnr"] = None if runs is None else sum(runs) / len(runs)
+            result["delta_psnr_runs"] = runs
             result.update(latent_action_probe(dataset, args.train_data_dir, args.stride))
     if outputs is not None:
         save_outputs(args.save_outputs_dir, outputs, dataset, args.window_size)

@@ -393,6 +393,25 @@ def test_evaluate_adds_latent_action_metrics(action_data, latent_ckpt, tmp_path,
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["delta_psnr"] == 0.0
 
 
+def test_delta_psnr_seeds_average_the_single_seed_runs(action_data, latent_ckpt, capsys, stub_scorer):
+    argv = ["--val_data_dir", str(action_data["val"]), "--window_size", "4", "--stride", "1", "--batch_size", "4",
+            "--device", "cpu", "--max_examples", "6", "--tokenizer_ckpt", "stub", "--temperature", "1",
+            "--checkpoint_dir", str(latent_ckpt), "--train_data_dir", str(action_data["train"])]
+
+    def result(*extra):
+        assert evaluate.main(argv + list(extra)) == 0
+        return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+    single = [result("--seed", str(seed))["delta_psnr"] for seed in (3, 4, 5)]
+    assert len(set(single)) > 1  # the sampler's seed matters, so the repeats differ
+    repeated = result("--seed", "3", "--delta_psnr_seeds", "3")
+    assert repeated["delta_psnr_runs"] == pytest.approx(single, abs=1e-9)
+    assert repeated["delta_psnr"] == pytest.approx(sum(single) / 3, abs=1e-9)
+    assert result("--seed", "3")["delta_psnr_runs"] == pytest.approx(single[:1], abs=1e-9)
+    with pytest.raises(SystemExit):
+        evaluate.main(argv + ["--delta_psnr_seeds", "0"])
+
+
 def test_rollout_plays_the_windows_action_rows(action_data, latent_ckpt, capsys, monkeypatch, stub_scorer):
     calls = []
 
