@@ -17,7 +17,7 @@ process on one device: launched with WORLD_SIZE > 1 it exits with an error.
 Action-conditioned checkpoints (genie/actions.py) read their action streams from the dataset's actions/ and follow
 the challenge's rule: target frame t sees the actions of frames < t only (so with latent actions, the latent
 action of the transition into t, inferred from frame t itself, is not given). A checkpoint with latent actions
-adds three keys:
+adds these keys:
 - delta_psnr (Genie's controllability metric): from each window's first num_prompt_frames frames, the remaining
   frames are generated twice, with the latent actions inferred from the ground truth and with uniformly random
   ones (same seed, same sampling noise); delta_psnr = mean PSNR(inferred, gt) - mean PSNR(random, gt) over the
