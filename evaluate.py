@@ -334,13 +334,6 @@ def score_frames(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tens
         metrics["pred_lpips"].update(scorer.lpips_distances(pred_images, gt_images).sum().item(), len(pred_images))
 
 
-def decoded_psnr(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tensor) -> torch.Tensor:
-    """(N,) PSNR between decoded predicted and ground-truth token frames."""
-    return torch.cat([psnr(scorer.decode(pred_NHW[a:a + LPIPS_CHUNK]), scorer.decode(gt_NHW[a:a + LPIPS_CHUNK]),
-                           value_range=(0.0, 255.0))
-                      for a in range(0, len(pred_NHW), LPIPS_CHUNK)])
-
-
 def decode_frames(scorer: FrameScorer, tokens_NHW: torch.Tensor) -> torch.Tensor:
     """(N, h, w) token ids -> uint8 images (N, H, W, 3), decoded LPIPS_CHUNK frames at a time."""
     return torch.cat([scorer.decode(tokens_NHW[a:a + LPIPS_CHUNK]) for a in range(0, len(tokens_NHW), LPIPS_CHUNK)])
@@ -518,11 +511,12 @@ def run_copy_ceiling(args: argparse.Namespace, device: torch.device) -> dict:
 
 @torch.no_grad()
 def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
-               scorer: FrameScorer, seed: int) -> float:
+               scorer: FrameScorer, seeds: List[int]) -> List[float]:
     """Genie's delta-PSNR: mean PSNR of frames generated with the ground truth's latent actions minus that with
     uniformly random latent actions, over the frames after the config's num_prompt_frames (see the module doc).
-    Real action inputs, if the model also has them, stay prompt-only in both runs. seed: the sampler's (the random
-    latent actions draw from seed + 1)."""
+    Real action inputs, if the model also has them, stay prompt-only in both runs. One value per sampler seed (the
+    random latent actions draw from seed + 1), each what that seed alone gives; the windows are read and their true
+    frames decoded once for all seeds."""
     P, K = model.config.num_prompt_frames, model.config.num_latent_actions
     if P >= args.window_size:
         raise DataMismatchError(f"delta_psnr: the checkpoint's num_prompt_frames {P} leaves no frame to generate in "
@@ -532,10 +526,10 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
                                 f"prompt motion to compare with (needs >= 2)")
     kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
                   control=True, stall_ratio=args.stall_ratio)
-    # same sampling noise in both runs: only the latent actions differ
-    generators = [torch.Generator(device=device).manual_seed(seed) for _ in range(2)]
-    random_actions = torch.Generator().manual_seed(seed + 1)
-    psnrs = [RunningMean(), RunningMean()]
+    # per seed, the same sampling noise in both runs: only the latent actions differ
+    generators = [[torch.Generator(device=device).manual_seed(seed) for _ in range(2)] for seed in seeds]
+    random_actions = [torch.Generator().manual_seed(seed + 1) for seed in seeds]
+    psnrs = [[RunningMean(), RunningMean()] for _ in seeds]
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
     for batch in tqdm(loader, desc="delta_psnr", unit="batch", file=sys.stderr):
@@ -545,16 +539,18 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
         if actions_BTD is not None:
             actions_BTD = actions_BTD.clone()
             actions_BTD[:, P:] = float("nan")  # unknown after the prompt
-        random_BT = latent_BT.clone()
-        random_BT[:, P:] = torch.randint(0, K, (B, T - P), generator=random_actions).to(device)
-        gt_NHW = x_BTHW[:, P:].flatten(0, 1)
-        for played_BT, generator, mean in zip((latent_BT, random_BT), generators, psnrs):
-            with autocast:
-                tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, generator=generator, actions=actions_BTD,
-                                          latent_actions=played_BT, **kwargs)
-            frame_psnr = decoded_psnr(scorer, tokens_BTHW[:, P:].flatten(0, 1), gt_NHW)
-            mean.update(frame_psnr.sum().item(), len(frame_psnr))
-    return psnrs[0].mean - psnrs[1].mean
+        truth_NHW3 = decode_frames(scorer, x_BTHW[:, P:].flatten(0, 1))
+        for seed_generators, seed_random_actions, seed_psnrs in zip(generators, random_actions, psnrs):
+            random_BT = latent_BT.clone()
+            random_BT[:, P:] = torch.randint(0, K, (B, T - P), generator=seed_random_actions).to(device)
+            for played_BT, generator, mean in zip((latent_BT, random_BT), seed_generators, seed_psnrs):
+                with autocast:
+                    tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, generator=generator,
+                                              actions=actions_BTD, latent_actions=played_BT, **kwargs)
+                frame_psnr = psnr(decode_frames(scorer, tokens_BTHW[:, P:].flatten(0, 1)), truth_NHW3,
+                                  value_range=(0.0, 255.0))
+                mean.update(frame_psnr.sum().item(), len(frame_psnr))
+    return [inferred.mean - random.mean for inferred, random in psnrs]
 
 
 def probe_examples(dataset: RawTokenDataset, default_stride: int):
@@ -681,8 +677,8 @@ def teacher_forced_result(model: STMaskGIT, loader, dataset: RawTokenDataset, ar
         if model.config.num_latent_actions and not args.withhold_actions:
             if scorer is None:
                 logger.warning("--skip_lpips: nothing is decoded, so delta_psnr is null")
-            runs = None if scorer is None else [delta_psnr(model, loader, args, device, scorer, args.seed + i)
-                                                for i in range(args.delta_psnr_seeds)]
+            seeds = [args.seed + i for i in range(args.delta_psnr_seeds)]
+            runs = None if scorer is None else delta_psnr(model, loader, args, device, scorer, seeds)
             result["delta_psnr"] = None if runs is None else sum(runs) / len(runs)
             result["delta_psnr_runs"] = runs
             result.update(latent_action_probe(dataset, args.train_data_dir, args.stride))
