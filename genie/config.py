@@ -69,6 +69,9 @@ class GenieConfig:
     # Rotary positions in the temporal attention too (genie/rope.py): half of each head's channels turned by the
     # frame index, so a query scores a key by how many frames back it lies, whatever its own frame.
     temporal_rope: bool = False
+    # An input of how corrupted each context frame is (TrainingRecipe.context_noise_ratio): + level * a learned
+    # vector on every token of the frame. Inference passes clean or generated frames at level 0, so it adds nothing.
+    context_noise_input: bool = False
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -184,6 +187,11 @@ class TrainingRecipe:
     # the temperature of those guesses: 0 each factor's argmax (the greedy guesses these options began with); > 0
     # whole tokens drawn from the model's distribution (a copy head's mixture), as sampled rollouts reveal them
     guess_temperature: float = 0.0
+    # this share of the examples has its unmasked frames 1.. corrupted (each token replaced by a random one with
+    # probability level, level ~ U(0, context_noise_max) per frame), as a rollout's own frames are wrong in places;
+    # with GenieConfig.context_noise_input the model is told each frame's level, so it learns how far to trust it
+    context_noise_ratio: float = 0.0
+    context_noise_max: float = 0.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

@@ -42,6 +42,20 @@ def _two_stream_target_masks(B: int, T: int, H: int, W: int, partial_ratio: floa
     return mask_BTHW
 
 
+def _context_noise(x_BTHWF: torch.Tensor, mask_BTHW: torch.Tensor, recipe: TrainingRecipe, V: int, generator):
+    """Corrupt the context frames of a share recipe.context_noise_ratio of the examples (the collator's step 5):
+    -> (factored tokens (B, T, H, W, F), levels (B, T) float, 0 for frame 0, wholly masked frames and the examples
+    left clean)."""
+    B, T = x_BTHWF.shape[:2]
+    chosen_B1 = torch.rand(B, 1, generator=generator) < recipe.context_noise_ratio
+    level_BT = recipe.context_noise_max * torch.rand(B, T, generator=generator) * chosen_B1
+    level_BT[:, 0] = 0.0
+    level_BT = level_BT.masked_fill(mask_BTHW.flatten(2).all(-1), 0.0)
+    replace_BTHW = (torch.rand(mask_BTHW.shape, generator=generator) < level_BT[:, :, None, None]) & ~mask_BTHW
+    random_BTHWF = torch.randint(0, V, x_BTHWF.shape, generator=generator)
+    return torch.where(replace_BTHW.unsqueeze(-1), random_BTHWF, x_BTHWF), level_BT
+
+
 @dataclass
 class MaskGITBatch:
     """A collated training batch; token ids are int64 (B, T, H, W)."""
@@ -50,6 +64,7 @@ class MaskGITBatch:
     target_ids: Optional[torch.Tensor] = None  # two-stream batches: every frame t >= 1 a (partly) masked target
     actions: Optional[torch.Tensor] = None  # (B, T, D) float: the config's real action streams
     latent_actions: Optional[torch.Tensor] = None  # (B, T) int64: latent action ids
+    context_noise: Optional[torch.Tensor] = None  # (B, T) float: each frame's share of tokens made random
 
     def __post_init__(self):
         if self.input_ids.dim() != 4 or self.labels.shape != self.input_ids.shape:
@@ -79,7 +94,11 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
        the others keep their tokens with step 1's light corruption only (not step 2's). Each masked frame is then
        predicted from whole earlier frames, nothing of itself revealed, which the published masking rarely shows a
        model (its frames are partly masked, and the frames before them too).
-    5. opt-in (recipe.two_stream_ratio > 0): that fraction of the batches is instead two-stream: input_ids are the
+    5. opt-in (recipe.context_noise_ratio > 0): that fraction of the examples has each frame >= 1 that is not
+       wholly masked corrupted at a level ~ U(0, recipe.context_noise_max) of its own: each unmasked token replaced
+       by a uniformly random token with that probability (`_context_noise`); the levels go to the batch
+       (context_noise, zero elsewhere), for a model that is told them (GenieConfig.context_noise_input).
+    6. opt-in (recipe.two_stream_ratio > 0): that fraction of the batches is instead two-stream: input_ids are the
        whole windows with step 1's light corruption (the context) and target_ids holds every frame t >= 1 as a
        target, fully masked or, for recipe.two_stream_partial_ratio of them, partly (`_two_stream_target_masks`);
        genie/objectives.py predicts target t from context frames < t.
@@ -148,8 +167,11 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
             forced_B = torch.rand(B, generator=g) < recipe.whole_frame_mask_ratio
             x_BTHWF[forced_B] = lightly_corrupted_BTHWF[forced_B]
             mask_BTHW[forced_B] = _whole_frame_masks(int(forced_B.sum()), T, H, W, g)
+        noise_BT = None
+        if recipe.context_noise_ratio > 0:
+            x_BTHWF, noise_BT = _context_noise(x_BTHWF, mask_BTHW, recipe, V, g)
         x_BTHW = unfactorize_token_ids(x_BTHWF, F, V)
         x_BTHW[mask_BTHW] = config.mask_token_id
-        return MaskGITBatch(x_BTHW, labels_BTHW, None, actions_BTD, latent_BT)
+        return MaskGITBatch(x_BTHW, labels_BTHW, None, actions_BTD, latent_BT, noise_BT)
 
     return collate_fn

@@ -72,6 +72,9 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.copy_head = None if config.copy_radius is None else CopyHead(
             config.d_model, config.copy_radius, config.num_factored_vocabs, config.factored_vocab_size,
             config.mask_token_id, config.copy_match_input)
+        # opt-in (config.context_noise_input): how corrupted a context frame is, as an input (with_context_noise)
+        self.context_noise_embed = nn.Parameter(torch.zeros(1, config.d_model)) if config.context_noise_input \
+            else None
         # decoding settings (set_greedy_tokens, set_joint_sampling), not weights
         self.joint_greedy = True
         self.joint_sampling = True
@@ -149,6 +152,16 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         if cond_BTC is not None:
             x_BTSC = x_BTSC + cond_BTC.unsqueeze(2).to(x_BTSC.dtype)
         return self.decoder(x_BTSC, mode, kv_cache, first_frame)
+
+    def with_context_noise(self, cond_BTC: Optional[torch.Tensor],
+                           noise_BT: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
+        """Frame conditioning (B, T, C) or None, plus each frame's context-noise level (B, T) times the learned
+        `context_noise_embed` when the model has that input and levels are given (training batches); unchanged
+        otherwise (inference: every frame at level 0)."""
+        if self.context_noise_embed is None or noise_BT is None:
+            return cond_BTC
+        noise_BTC = noise_BT.unsqueeze(-1) * self.context_noise_embed
+        return noise_BTC if cond_BTC is None else cond_BTC + noise_BTC.to(cond_BTC.dtype)
 
     def copy_sources(self, prev_BTHW: torch.Tensor) -> Optional[torch.Tensor]:
         """Tokens of the frame before each frame (B, T, H, W) (mask_token_id where unknown) -> what the copy head

@@ -44,7 +44,8 @@ def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0,
     x_BTHW, labels_BTHW = batch.input_ids, batch.labels
     model.check_tokens(x_BTHW)
     B, T = x_BTHW.shape[:2]
-    cond_BTC = model.action_embeds(B, T, batch.actions, batch.latent_actions)
+    cond_BTC = model.with_context_noise(model.action_embeds(B, T, batch.actions, batch.latent_actions),
+                                        batch.context_noise)
     if model.training and own_context_ratio > 0:
         x_BTHW = shift_targets_past_own_frames(model, x_BTHW, cond_BTC, own_context_ratio, guess_temperature)
     if model.training and self_reveal_ratio > 0:

@@ -235,3 +235,36 @@ def test_two_stream_ratio_mixes_batches_and_keeps_light_corruption():
     assert any(not torch.equal(b.input_ids, b.labels) for b in
                [collate(make_features(2, seed=s)) for s in range(40)] if b.target_ids is not None), \
         "the context gets step 1's random corruption"
+
+
+def test_context_noise_corrupts_only_the_chosen_examples_unmasked_frames_at_their_levels():
+    config = tiny_config()
+    recipe = TrainingRecipe(whole_frame_mask_ratio=1.0, max_corrupt_rate=0.0, context_noise_ratio=0.5,
+                            context_noise_max=0.8)
+    collate = get_maskgit_collator(config, recipe, seed=0)
+    replaced, expected, chosen, total = 0.0, 0.0, 0, 0
+    for step in range(60):
+        batch = collate(make_features(8, seed=step))
+        x, labels, level = frames(batch.input_ids), frames(batch.labels), batch.context_noise
+        assert level.shape == (8, T) and (level >= 0).all() and (level <= 0.8).all()
+        whole = (x == config.mask_token_id).all(-1)
+        assert (level[:, 0] == 0).all() and (level[whole] == 0).all(), "frame 0 and targets have no level"
+        changed = (x != labels) & (x != config.mask_token_id)
+        assert not changed[level == 0].any(), "only frames with a level are corrupted"
+        replaced += changed.float().sum().item()
+        expected += (level.unsqueeze(-1) * (1 - 1 / VOCAB)).expand(-1, -1, S).sum().item()
+        chosen += int((level > 0).any(1).sum())
+        total += 8
+    assert 0.35 < chosen / total < 0.65  # about context_noise_ratio of the examples
+    assert abs(replaced / expected - 1) < 0.1  # each token replaced with its frame's probability
+
+
+def test_without_context_noise_batches_carry_no_levels_and_draw_as_before():
+    config = tiny_config()
+    plain = get_maskgit_collator(config, TrainingRecipe(whole_frame_mask_ratio=1.0), seed=0)
+    noisy = get_maskgit_collator(config, TrainingRecipe(whole_frame_mask_ratio=1.0, context_noise_ratio=1.0,
+                                                        context_noise_max=0.0), seed=0)
+    a, b = plain(make_features(4)), noisy(make_features(4))
+    assert a.context_noise is None
+    # the noise is drawn after everything else, so a zero level leaves the batch as the plain recipe draws it
+    assert torch.equal(a.input_ids, b.input_ids) and (b.context_noise == 0).all()

@@ -506,10 +506,38 @@ def test_guess_temperature_reaches_the_training_loss():
 
 @pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio", "two_stream_ratio",
                                    "two_stream_partial_ratio", "self_reveal_ratio", "own_context_ratio",
-                                   "guess_temperature"])
+                                   "guess_temperature", "context_noise_ratio", "context_noise_max"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
         TrainingRecipe(**{field: 1.5})
+
+
+def test_context_noise_input_tells_the_model_each_frames_level_and_is_absent_at_level_zero():
+    config = tiny_config(context_noise_input=True)
+    torch.manual_seed(0)
+    model = STMaskGIT(config)
+    model.init_weights()
+    with torch.no_grad():
+        model.context_noise_embed.normal_()
+    plain = STMaskGIT(tiny_config())  # the same weights without the input: the published layout
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k != "context_noise_embed"})
+    assert "context_noise_embed" not in plain.state_dict()
+    model.eval()
+    plain.eval()
+    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    x = random_tokens(config, B=2, T=4, seed=1, mask_rate=0.4)
+    x[:, 0] = labels[:, 0]
+    levels = torch.tensor([[0.0, 0.3, 0.0, 0.6], [0.0, 0.0, 0.5, 0.0]])
+    clean = plain(MaskGITBatch(x, labels)).loss
+    torch.testing.assert_close(model(MaskGITBatch(x, labels)).loss, clean, rtol=0, atol=0)
+    torch.testing.assert_close(model(MaskGITBatch(x, labels, context_noise=torch.zeros(2, 4))).loss, clean)
+    noisy = model(MaskGITBatch(x, labels, context_noise=levels)).loss
+    assert not torch.allclose(noisy, clean)
+    noisy.backward()
+    assert model.context_noise_embed.grad.abs().sum() > 0
+    # the level enters as level * embed on every token of its frame, like an action embedding
+    cond = model.with_context_noise(None, levels)
+    torch.testing.assert_close(cond, levels[..., None] * model.context_noise_embed.detach())
 
 
 def test_one_config_file_holds_architecture_and_recipe_and_legacy_keys_load(tmp_path):
