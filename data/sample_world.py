@@ -563,9 +563,12 @@ def save_split(path, data: dict):
 def build_sample_world(out_dir, seed: int = 0, train_maps: Sequence[str] = TRAIN_MAPS,
                        val_maps: Sequence[str] = VAL_MAPS, train_episodes: int = 10,
                        val_episodes: int = 1, episode_len: int = 2000, workers: int = 2,
-                       overwrite: bool = False, cfg: Optional[WorldConfig] = None) -> bool:
+                       overwrite: bool = False, cfg: Optional[WorldConfig] = None,
+                       train_episode_len: Optional[int] = None) -> bool:
     """Write out_dir/train.npz, out_dir/val.npz and a JSON sidecar of the parameters.
 
+    `train_episode_len` (default: `episode_len`) sets the training walks' length alone, so that a world with more,
+    shorter training walks keeps the validation split of one with fewer, longer ones.
     Skips the work (returns False) when both files exist and the sidecar matches the requested parameters.
     """
     cfg = cfg or WorldConfig()
@@ -576,6 +579,9 @@ def build_sample_world(out_dir, seed: int = 0, train_maps: Sequence[str] = TRAIN
         "train": {"maps": list(train_maps), "episodes_per_map": train_episodes},
         "val": {"maps": list(val_maps), "episodes_per_map": val_episodes},
     }
+    if train_episode_len is not None and train_episode_len != episode_len:
+        # recorded only when it differs, so that the sidecars of worlds built before the option still match
+        params["train"]["episode_len"] = train_episode_len
     sidecar = out_dir / SIDECAR_NAME
     outputs = [out_dir / "train.npz", out_dir / "val.npz"]
     if not overwrite and sidecar.exists() and all(p.exists() for p in outputs):
@@ -590,7 +596,8 @@ def build_sample_world(out_dir, seed: int = 0, train_maps: Sequence[str] = TRAIN
     sidecar.unlink(missing_ok=True)  # a partial rebuild must never look complete
     for split, path in zip(("train", "val"), outputs):
         t0 = time.time()
-        data = generate_split(params[split]["maps"], params[split]["episodes_per_map"], episode_len, seed,
+        split_len = params[split].get("episode_len", episode_len)
+        data = generate_split(params[split]["maps"], params[split]["episodes_per_map"], split_len, seed,
                               split=split, workers=workers, cfg=cfg)
         save_split(path, data)
         print(f"{path}: {len(data['frames'])} frames, {len(data['maps'])} episodes in {time.time() - t0:.1f}s")
@@ -615,18 +622,23 @@ def main():
     p.add_argument("--train_episodes", type=int, default=10, help="training episodes per training map")
     p.add_argument("--val_episodes", type=int, default=1, help="validation episodes per validation map")
     p.add_argument("--episode_len", type=int, default=2000, help="recorded tics (frames) per episode, 35 per second")
+    p.add_argument("--train_episode_len", type=int, default=None,
+                   help="tics per training episode, if not --episode_len (validation keeps --episode_len)")
     p.add_argument("--workers", type=int, default=2, help="processes generating episodes in parallel")
     p.add_argument("--overwrite", action="store_true", help="regenerate even if matching outputs exist")
     args = p.parse_args()
     if min(args.train_episodes, args.val_episodes, args.episode_len, args.workers) < 1:
         p.error("--train_episodes, --val_episodes, --episode_len and --workers must be >= 1")
+    if args.train_episode_len is not None and args.train_episode_len < 1:
+        p.error(f"--train_episode_len must be >= 1, got {args.train_episode_len}")
     try:
         check_maps(args.train_maps + args.val_maps)
     except ValueError as e:
         p.error(str(e))
     build_sample_world(args.output_dir, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=args.val_episodes,
-                       episode_len=args.episode_len, workers=args.workers, overwrite=args.overwrite)
+                       episode_len=args.episode_len, workers=args.workers, overwrite=args.overwrite,
+                       train_episode_len=args.train_episode_len)
 
 
 if __name__ == "__main__":

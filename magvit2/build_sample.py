@@ -110,6 +110,10 @@ def parse_args(argv=None):
                    help="maps of the held-out validation episodes (default: the first 8 training maps and MAP18, "
                         "which is never trained on)")
     p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
+    p.add_argument("--train_episode_len", type=int, default=None,
+                   help="frames per training episode, if not --episode_len; the validation split keeps "
+                        "--episode_len (e.g. 48 maps x 1 walk of 1000 frames, about the default's training frames, "
+                        "with the default's validation split byte for byte)")
     p.add_argument("--turn_speed", type=float, default=WorldConfig.turn_speed,
                    help="degrees the walker turns per tic while a turn button is held (default %(default)s: 13 "
                         "degrees per 15-tic window step; 1.75 was the default before, 26 degrees); lower makes a "
@@ -142,6 +146,8 @@ def parse_args(argv=None):
             p.error(f"--{name} must be > 0, got {getattr(args, name)}")
     if args.workers < 1:
         p.error(f"--workers must be >= 1, got {args.workers}")
+    if args.train_episode_len is not None and args.train_episode_len < 1:
+        p.error(f"--train_episode_len must be >= 1, got {args.train_episode_len}")
     return args
 
 
@@ -152,6 +158,7 @@ def main(argv=None):
     raw = out / "raw"
     build_sample_world(raw, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=1, episode_len=args.episode_len,
+                       train_episode_len=args.train_episode_len,
                        workers=args.workers, overwrite=args.overwrite,
                        cfg=WorldConfig(turn_speed=args.turn_speed, walk_speed=args.walk_speed))
     if args.train_tokenizer:

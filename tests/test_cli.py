@@ -49,6 +49,28 @@ def test_renamed_flags_keep_their_old_spelling():
     assert (args.output_dir, args.tokenizer_ckpt) == ("somewhere", "tok")
 
 
+def test_build_sample_passes_the_training_walks_length_through(monkeypatch, capsys):
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_build(raw, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(build_sample, "build_sample_world", fake_build)
+    with pytest.raises(Stop):
+        build_sample.main(["--output_dir", "somewhere", "--train_episode_len", "1000"])
+    assert (seen["train_episode_len"], seen["episode_len"]) == (1000, 1500)
+    with pytest.raises(Stop):
+        build_sample.main(["--output_dir", "somewhere"])
+    assert seen["train_episode_len"] is None
+    with pytest.raises(SystemExit):
+        build_sample.parse_args(["--train_episode_len", "0"])
+    assert "--train_episode_len must be >= 1" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("text, expected", [
     ("processor\t: 0\nflags\t\t: fpu sse2 avx512f avx512_bf16 avx512_vnni\n", True),     # AVX512-BF16
     ("processor\t: 0\nflags\t\t: fpu sse2 avx512f amx_tile amx_bf16\n", True),          # AMX

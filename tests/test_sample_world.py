@@ -225,6 +225,27 @@ def test_episode_maps_come_from_freedoom1_and_unknown_maps_name_their_wad():
     assert np.abs(np.diff(e1m1, axis=0)).mean() > 1  # a walk through a lit map, not a frozen or black screen
 
 
+def test_train_episode_len_shortens_training_walks_and_keeps_validation(tmp_path):
+    """Shorter training walks (more maps at the same frames) leave the validation split byte for byte as it was; the
+    sidecar of a world built without the option does not change (existing worlds are not rebuilt)."""
+    kwargs = dict(train_maps=("MAP01",), val_maps=("MAP18",), train_episodes=1, episode_len=30, workers=1, cfg=FAST)
+    assert sw.build_sample_world(tmp_path / "long", **kwargs)
+    assert sw.build_sample_world(tmp_path / "short", train_episode_len=20, **kwargs)
+    long_params = json.loads((tmp_path / "long" / sw.SIDECAR_NAME).read_text())
+    short_params = json.loads((tmp_path / "short" / sw.SIDECAR_NAME).read_text())
+    assert "episode_len" not in long_params["train"] and short_params["train"]["episode_len"] == 20
+    assert {k: v for k, v in short_params.items() if k != "train"} == {k: v for k, v in long_params.items() if k != "train"}
+    with np.load(tmp_path / "long" / "val.npz") as a, np.load(tmp_path / "short" / "val.npz") as b:
+        for key in ("frames", "segment_ids", "actions_buttons", "actions_driving_command"):
+            assert a[key].tobytes() == b[key].tobytes(), key
+    with np.load(tmp_path / "long" / "train.npz") as a, np.load(tmp_path / "short" / "train.npz") as b:
+        assert a["frames"].shape[0] == 30 and b["frames"].shape[0] == 20
+        assert b["frames"].tobytes() == a["frames"][:20].tobytes()  # the same walk, stopped sooner
+    assert not sw.build_sample_world(tmp_path / "short", train_episode_len=20, **kwargs)  # matching sidecar: skipped
+    assert sw.build_sample_world(tmp_path / "short", train_episode_len=30, **kwargs)  # equal to episode_len: the
+    assert json.loads((tmp_path / "short" / sw.SIDECAR_NAME).read_text()) == long_params  # long world's sidecar
+
+
 def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
     out = tmp_path / "raw"
     argv = ["sample_world", "--output_dir", str(out), "--seed", "1", "--train_maps", "MAP01", "--val_maps", "MAP18",
