@@ -627,10 +627,9 @@ def main():
     p.add_argument("--workers", type=int, default=2, help="processes generating episodes in parallel")
     p.add_argument("--overwrite", action="store_true", help="regenerate even if matching outputs exist")
     args = p.parse_args()
-    if min(args.train_episodes, args.val_episodes, args.episode_len, args.workers) < 1:
-        p.error("--train_episodes, --val_episodes, --episode_len and --workers must be >= 1")
-    if args.train_episode_len is not None and args.train_episode_len < 1:
-        p.error(f"--train_episode_len must be >= 1, got {args.train_episode_len}")
+    train_len = args.episode_len if args.train_episode_len is None else args.train_episode_len
+    if min(args.train_episodes, args.val_episodes, args.episode_len, train_len, args.workers) < 1:
+        p.error("--train_episodes, --val_episodes, --episode_len, --train_episode_len and --workers must be >= 1")
     try:
         check_maps(args.train_maps + args.val_maps)
     except ValueError as e:

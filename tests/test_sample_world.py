@@ -242,8 +242,9 @@ def test_train_episode_len_shortens_training_walks_and_keeps_validation(tmp_path
         assert a["frames"].shape[0] == 30 and b["frames"].shape[0] == 20
         assert b["frames"].tobytes() == a["frames"][:20].tobytes()  # the same walk, stopped sooner
     assert not sw.build_sample_world(tmp_path / "short", train_episode_len=20, **kwargs)  # matching sidecar: skipped
-    assert sw.build_sample_world(tmp_path / "short", train_episode_len=30, **kwargs)  # equal to episode_len: the
-    assert json.loads((tmp_path / "short" / sw.SIDECAR_NAME).read_text()) == long_params  # long world's sidecar
+    # a length equal to episode_len is the long world, sidecar and all
+    assert sw.build_sample_world(tmp_path / "short", train_episode_len=30, **kwargs)
+    assert json.loads((tmp_path / "short" / sw.SIDECAR_NAME).read_text()) == long_params
 
 
 def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
