@@ -10,8 +10,11 @@ Teacher-forced protocol (the default). Each validation window (16 frames at stri
 predicted frame by frame from ground-truth prefixes with MaskGIT; the model's temporal KV cache computes the
 ground-truth context once and all 15 targets in one batched pass per MaskGIT step. Progress goes to stderr; the
 last line printed on stdout is one JSON object with loss, acc, copy_acc (the accuracy of copying ground-truth frame
-t-1 on the same windows, the baseline acc must beat), pred_lpips (null with --skip_lpips), gen_time, dec_time (s
-per frame; null when nothing is decoded) and num_examples. Evaluation (either protocol) runs in one
+t-1 on the same windows, the baseline acc must beat), bit_err, pred_bit_err and copy_bit_err (wrong bits of a
+token id per target token: expected of a token drawn from the prediction, of the protocol's own predictions, of
+copying frame t-1; a token a few bits off decodes close to the right one; null for a vocabulary that is not a power
+of two), pred_lpips (null with --skip_lpips), gen_time, dec_time (s per frame; null when nothing is decoded) and
+num_examples. Evaluation (either protocol) runs in one
 process on one device: launched with WORLD_SIZE > 1 it exits with an error.
 
 Action-conditioned checkpoints (genie/actions.py) read their action streams from the dataset's actions/ and follow
@@ -79,6 +82,7 @@ from typing import List, Optional
 
 import numpy as np
 import torch
+from einops import rearrange
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
@@ -92,7 +96,7 @@ from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.actions import LATENT_ACTION_NAME, latent_action_sidecar, prepare_action_streams, window_actions
 from genie.config import check_dataset_matches
 from genie.copy_ceiling import ceiling_rollout
-from genie.metrics import RunningMean, factored_cross_entropy, images_to_unit_range
+from genie.metrics import RunningMean, bit_errors, factored_cross_entropy, images_to_unit_range, true_bit_probs
 from genie.sampling import UNMASK_MODES
 from genie.inference import changed_share, generate, teacher_forced
 from genie.model import STMaskGIT
@@ -276,7 +280,8 @@ def batch_actions(model: STMaskGIT, batch: dict, device: torch.device, args: arg
             None if latent_BT is None else latent_BT.to(device))
 
 
-TEACHER_FORCED_KEYS = ("loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time")
+TEACHER_FORCED_KEYS = ("loss", "acc", "copy_acc", "bit_err", "pred_bit_err", "copy_bit_err", "pred_lpips", "gen_time",
+                       "dec_time")
 
 
 def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
@@ -286,6 +291,7 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
     outputs: when a list, per-window frames (prompt | predictions | ground truth) are appended to it as numpy.
     """
     metrics = {name: RunningMean() for name in TEACHER_FORCED_KEYS}
+    num_bits = token_bits(model.config.image_vocab_size)
     generator = torch.Generator(device=device).manual_seed(args.seed)
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
@@ -309,6 +315,8 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
         metrics["loss"].update(factored_cross_entropy(logits_BVFTHW, targets_BTHW).sum().item(), targets_BTHW.numel())
         metrics["acc"].update((samples_BTHW == targets_BTHW).sum().item(), targets_BTHW.numel())
         metrics["copy_acc"].update((x_BTHW[:, :-1] == targets_BTHW).sum().item(), targets_BTHW.numel())
+        if num_bits:
+            add_bit_errors(metrics, logits_BVFTHW, samples_BTHW, x_BTHW[:, :-1], targets_BTHW, num_bits)
         if scorer is not None:
             score_frames(scorer, samples_BTHW.flatten(0, 1), targets_BTHW.flatten(0, 1), metrics, device)
         if outputs is not None:
@@ -319,6 +327,23 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
     result = {name: metrics[name].mean for name in TEACHER_FORCED_KEYS}
     result["num_examples"] = num_examples
     return result
+
+
+def token_bits(vocab_size: int) -> Optional[int]:
+    """The bits of a token id (18 for the 2^18 LFQ codes), None for a vocabulary that is not a power of two."""
+    num_bits = vocab_size.bit_length() - 1
+    return num_bits if vocab_size > 1 and 1 << num_bits == vocab_size else None
+
+
+def add_bit_errors(metrics: dict, logits_BVFTHW: torch.Tensor, samples_BTHW: torch.Tensor, copies_BTHW: torch.Tensor,
+                   targets_BTHW: torch.Tensor, num_bits: int) -> None:
+    """Wrong bits per token: expected of a token drawn from the prediction (bit_err), of the evaluation's own
+    predictions (pred_bit_err) and of copying frame t-1 (copy_bit_err). Tokens a few bits apart decode alike."""
+    n = targets_BTHW.numel()
+    logits_NVF = rearrange(logits_BVFTHW, "B V F T H W -> (B T H W) V F")
+    metrics["bit_err"].update((1 - true_bit_probs(logits_NVF, targets_BTHW.flatten())).sum().item(), n)
+    metrics["pred_bit_err"].update(bit_errors(samples_BTHW, targets_BTHW, num_bits).sum().item(), n)
+    metrics["copy_bit_err"].update(bit_errors(copies_BTHW, targets_BTHW, num_bits).sum().item(), n)
 
 
 def score_frames(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tensor, metrics: dict,

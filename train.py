@@ -211,7 +211,12 @@ def config_path(path) -> str:
 def load_config(path):
     """(GenieConfig, TrainingRecipe) of a --genie_config file (one JSON holds both, as the published one does)."""
     path = config_path(path)
-    return GenieConfig.from_pretrained(path), TrainingRecipe.from_pretrained(path)
+    config, recipe = GenieConfig.from_pretrained(path), TrainingRecipe.from_pretrained(path)
+    V = config.factored_vocab_size
+    if recipe.bit_loss_weight > 0 and V & (V - 1):
+        raise ConfigError(f"{path}: bit_loss_weight needs a power-of-two factored vocabulary (the bits of a token "
+                          f"id), but image_vocab_size {config.image_vocab_size} gives {V} values per factor")
+    return config, recipe
 
 
 def build_datasets(args, config: GenieConfig, batch_items: int):

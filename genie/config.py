@@ -192,6 +192,12 @@ class TrainingRecipe:
     # with GenieConfig.context_noise_input the model is told each frame's level, so it learns how far to trust it
     context_noise_ratio: float = 0.0
     context_noise_max: float = 0.0
+    # weight of a second loss beside the CE, in training only: for every bit of the predicted token's id, the binary
+    # cross entropy of the probability the prediction puts on that bit's true value (genie/objectives.py, bit_loss).
+    # Tokens a few bits apart decode to nearly the same pixels, and the expected number of wrong bits of a drawn
+    # token is the sum of those probabilities' complements, which CE alone does not shape. Needs a power-of-two
+    # factored vocabulary; 0: off (the CE alone)
+    bit_loss_weight: float = 0.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

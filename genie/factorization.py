@@ -1,4 +1,5 @@
-"""Token id <-> factor conversion (docs/formats.md §2): factor k = (t // V^k) % V, t = sum_k f_k * V^k."""
+"""Token id <-> factor conversion (docs/formats.md §2): factor k = (t // V^k) % V, t = sum_k f_k * V^k; the bits of
+a factor value."""
 import torch
 
 
@@ -15,3 +16,13 @@ def unfactorize_token_ids(factor_ids: torch.Tensor, num_factored_vocabs: int = 2
     assert factor_ids.size(-1) == num_factored_vocabs
     powers = factored_vocab_size ** torch.arange(num_factored_vocabs, device=factor_ids.device)
     return (factor_ids * powers).sum(-1)
+
+
+def factor_value_bits(factored_vocab_size: int, device=None) -> torch.Tensor:
+    """(V, J) float: bit j (least significant first) of every factor value v < V = 2^J. With V a power of two, a
+    token's id bits are its factors' bits in factor order, so these are the LFQ code's signs (docs/formats.md §2)."""
+    num_bits = factored_vocab_size.bit_length() - 1
+    if factored_vocab_size < 2 or 1 << num_bits != factored_vocab_size:
+        raise ValueError(f"factor value bits need a power-of-two factored vocabulary, got {factored_vocab_size}")
+    values_V1 = torch.arange(factored_vocab_size, device=device).unsqueeze(-1)
+    return ((values_V1 >> torch.arange(num_bits, device=device)) & 1).float()

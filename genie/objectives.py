@@ -1,5 +1,5 @@
-"""Training objectives of the dynamics model: the MaskGIT masked-token loss (with the opt-in self-reveal inputs)
-and the opt-in two-stream loss. `STMaskGIT.forward` calls `training_loss`.
+"""Training objectives of the dynamics model: the MaskGIT masked-token loss (with the opt-in self-reveal inputs and
+bit loss) and the opt-in two-stream loss. `STMaskGIT.forward` calls `training_loss`.
 
 Both read out only the tokens the loss counts (the (F*V)-wide logits of every other token are most of a small
 model's step); genie/reference.py computes the same loss from the logits of every token, and the tests hold the two
@@ -12,7 +12,7 @@ import torch
 from einops import rearrange
 
 from genie.config import TrainingRecipe
-from genie.metrics import factored_argmax_correct, factored_cross_entropy
+from genie.metrics import factored_argmax_correct, factored_cross_entropy, true_bit_probs
 from genie.inference import context_cache
 from genie.masking import MaskGITBatch
 from genie.sampling import sample_prediction_tokens
@@ -30,16 +30,18 @@ def training_loss(model, batch: MaskGITBatch, recipe: TrainingRecipe) -> LossOut
     """The loss of a collated batch: two-stream when it has targets, else the masked-token loss."""
     if batch.target_ids is not None:
         return two_stream_loss(model, batch)
-    return masked_loss(model, batch, recipe.self_reveal_ratio, recipe.own_context_ratio, recipe.guess_temperature)
+    return masked_loss(model, batch, recipe.self_reveal_ratio, recipe.own_context_ratio, recipe.guess_temperature,
+                       recipe.bit_loss_weight)
 
 
-def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0,
-                own_context_ratio: float = 0.0, guess_temperature: float = 0.0) -> LossOutput:
+def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0, own_context_ratio: float = 0.0,
+                guess_temperature: float = 0.0, bit_loss_weight: float = 0.0) -> LossOutput:
     """Factored CE and accuracy over the masked tokens of frames 1..T-1 of batch.input_ids (B, T, H, W).
 
     In training mode a share own_context_ratio of the examples first predicts its fully masked frames and is then
-    trained on the frames after them (`shift_targets_past_own_frames`), and a share self_reveal_ratio has part of
-    its masked tokens filled with the model's own guesses (`reveal_own_predictions`).
+    trained on the frames after them (`shift_targets_past_own_frames`), a share self_reveal_ratio has part of
+    its masked tokens filled with the model's own guesses (`reveal_own_predictions`), and the loss adds
+    bit_loss_weight times `bit_loss` of the same tokens.
     """
     x_BTHW, labels_BTHW = batch.input_ids, batch.labels
     model.check_tokens(x_BTHW)
@@ -54,7 +56,8 @@ def masked_loss(model, batch: MaskGITBatch, self_reveal_ratio: float = 0.0,
     x_BTSC = model.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
     relevant_BTS = rearrange(x_BTHW == model.mask_token_id, "B T H W -> B T (H W)")
     relevant_BTS[:, 0] = False  # frame 0 is always given
-    return loss_at(model, x_BTSC, relevant_BTS, rearrange(labels_BTHW, "B T H W -> B T (H W)"), sources_BTSK)
+    return loss_at(model, x_BTSC, relevant_BTS, rearrange(labels_BTHW, "B T H W -> B T (H W)"), sources_BTSK,
+                   bit_loss_weight if model.training else 0.0)
 
 
 @torch.no_grad()
@@ -155,12 +158,26 @@ def two_stream_loss(model, batch: MaskGITBatch) -> LossOutput:
 
 
 def loss_at(model, x_BTSC: torch.Tensor, relevant_BTS: torch.Tensor, labels_BTS: torch.Tensor,
-            sources_BTSK: Optional[torch.Tensor] = None) -> LossOutput:
-    """Read out the hidden states (B, T, S, C) where relevant (B, T, S) only -> factored CE and acc there.
-    sources_BTSK: the copy head's sources of every position (`STMaskGIT.copy_sources`), None without one."""
+            sources_BTSK: Optional[torch.Tensor] = None, bit_loss_weight: float = 0.0) -> LossOutput:
+    """Read out the hidden states (B, T, S, C) where relevant (B, T, S) only -> factored CE and acc there, plus
+    bit_loss_weight times their `bit_loss` in the loss. sources_BTSK: the copy head's sources of every position
+    (`STMaskGIT.copy_sources`), None without one."""
     factored_NVF = model.readout(x_BTSC[relevant_BTS], None if sources_BTSK is None else sources_BTSK[relevant_BTS])
     targets_N = labels_BTS[relevant_BTS]
     num_relevant = max(targets_N.numel(), 1)
     loss = factored_cross_entropy(factored_NVF, targets_N).sum() / num_relevant
+    if bit_loss_weight > 0:
+        loss = loss + bit_loss_weight * bit_loss(factored_NVF, targets_N).sum() / num_relevant
     acc = factored_argmax_correct(factored_NVF, targets_N).sum().float() / num_relevant
     return LossOutput(loss=loss, acc=acc)
+
+
+def bit_loss(factored_NVF: torch.Tensor, targets_N: torch.Tensor) -> torch.Tensor:
+    """Per-token binary cross entropy of the id's bits (N,): -log `true_bit_probs`, summed over the F * J bits.
+
+    A token drawn from the prediction has on average sum(1 - true_bit_probs) wrong bits, and each wrong bit costs
+    far less in decoded pixels than a wrong token does (on the sample world's tokenizer, one flipped bit on a
+    quarter of the positions leaves a frame at ~40 dB, a random token at ~27), which CE's all-or-nothing target
+    does not see.
+    """
+    return -true_bit_probs(factored_NVF, targets_N).clamp_min(1e-30).log().sum(dim=(1, 2))

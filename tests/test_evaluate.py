@@ -23,7 +23,8 @@ from genie.inference import teacher_forced
 
 REPO = Path(__file__).resolve().parents[1]
 VOCAB = 64 ** 2
-JSON_KEYS = {"loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time", "num_examples"}
+JSON_KEYS = {"loss", "acc", "copy_acc", "bit_err", "pred_bit_err", "copy_bit_err", "pred_lpips", "gen_time", "dec_time",
+             "num_examples"}
 ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold")
                        for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
 ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
@@ -172,6 +173,16 @@ def test_json_line_metrics_and_saved_outputs(tiny, capsys):
     assert result["acc"] == pytest.approx((video[:, 1:8] == video[:, 8:]).mean())
     # copy_acc: copying ground-truth frame t-1, on the same windows
     assert result["copy_acc"] == pytest.approx((windows[:, :-1] == windows[:, 1:]).double().mean().item())
+    # wrong bits per token (12-bit ids): of the saved predictions, of copying, and expected of a draw
+    popcount = np.vectorize(lambda v: bin(int(v)).count("1"))
+    assert result["pred_bit_err"] == pytest.approx(popcount(video[:, 1:8] ^ video[:, 8:]).mean())
+    assert result["copy_bit_err"] == pytest.approx(popcount((windows[:, :-1] ^ windows[:, 1:]).numpy()).mean())
+    p_NVF = logits.double().softmax(dim=1).permute(0, 3, 4, 5, 1, 2).reshape(-1, 64, 2).numpy()
+    targets = windows[:, 1:].reshape(-1).numpy()
+    distance_VV = popcount(np.arange(64)[:, None] ^ np.arange(64)[None, :])  # bits between two factor values
+    expected = sum((p_NVF[:, :, f] * distance_VV[:, targets // 64 ** f % 64].T).sum(1) for f in range(2))
+    assert result["bit_err"] == pytest.approx(expected.mean(), rel=1e-4)
+    assert 0 < result["bit_err"] < 12 and result["copy_bit_err"] > 0
     assert RawTokenDataset(out_dir, window_size=15, stride=1, filter_overlaps=True).valid_start_inds.tolist() == \
         [15 * i for i in range(5)]
 

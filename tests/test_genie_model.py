@@ -7,12 +7,14 @@ import pytest
 import safetensors.torch
 import torch
 import torch.nn.functional as F
+from einops import rearrange
 
 import genie
 from common.config import ConfigError
 from common.errors import CheckpointError
 from genie import GenieConfig, MaskGITBatch, STMaskGIT, TrainingRecipe
 from genie.checkpoint import load_state_dict_checked
+from genie import metrics, objectives
 from genie.objectives import reveal_own_predictions, shift_targets_past_own_frames, two_stream_loss
 from genie.reference import full_logits_loss
 
@@ -506,10 +508,72 @@ def test_guess_temperature_reaches_the_training_loss():
 
 @pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio", "two_stream_ratio",
                                    "two_stream_partial_ratio", "self_reveal_ratio", "own_context_ratio",
-                                   "guess_temperature", "context_noise_ratio", "context_noise_max"])
+                                   "guess_temperature", "context_noise_ratio", "context_noise_max",
+                                   "bit_loss_weight"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
         TrainingRecipe(**{field: 1.5})
+
+
+def test_true_bit_probs_give_a_drawn_tokens_expected_wrong_bits():
+    """sum(1 - true_bit_probs) is the expected Hamming distance of a token drawn from the factors' distributions to
+    the target, here enumerated over every token of a vocabulary of 8 ** 2."""
+    V, N = 8, 5
+    g = torch.Generator().manual_seed(0)
+    logits_NVF = torch.randn(N, V, 2, generator=g) * 2
+    targets_N = torch.randint(0, V * V, (N,), generator=g)
+    tokens = torch.arange(V * V)
+    probs_NVF = logits_NVF.softmax(dim=1)
+    joint_NT = probs_NVF[:, tokens % V, 0] * probs_NVF[:, tokens // V, 1]  # (N, V * V)
+    hamming_NT = torch.stack([torch.tensor([bin(int(t) ^ int(target)).count("1") for t in tokens])
+                              for target in targets_N]).float()
+    p_true_NFJ = metrics.true_bit_probs(logits_NVF, targets_N)
+    assert p_true_NFJ.shape == (N, 2, 3)
+    torch.testing.assert_close((1 - p_true_NFJ).sum(dim=(1, 2)), (joint_NT * hamming_NT).sum(-1))
+    torch.testing.assert_close(objectives.bit_loss(logits_NVF, targets_N), -p_true_NFJ.log().sum(dim=(1, 2)))
+    # a copy head's log-probabilities give the same as the logits they normalize
+    torch.testing.assert_close(metrics.true_bit_probs(logits_NVF.log_softmax(dim=1), targets_N), p_true_NFJ)
+    with pytest.raises(ValueError, match="power-of-two"):
+        metrics.true_bit_probs(torch.zeros(N, 6, 2), targets_N % 36)
+
+
+def test_bit_loss_a_token_bits_away_costs_by_its_wrong_bits_and_a_confident_bit_stays_finite():
+    V = 512
+    target = torch.tensor([5 + 512 * 300])
+    near, far = target ^ 1, target ^ 0b111111111  # one wrong bit; nine wrong bits, both in factor 0
+
+    def confident_on(token):
+        logits_NVF = torch.full((1, V, 2), -30.0)
+        logits_NVF[0, token % V, 0] = logits_NVF[0, token // V, 1] = 30.0
+        return logits_NVF
+
+    losses = [objectives.bit_loss(confident_on(t), target).item() for t in (target, near, far)]
+    assert losses[0] < 1e-6 and 50 < losses[1] < 70 and losses[2] == pytest.approx(9 * losses[1], rel=1e-4)
+
+
+@pytest.mark.parametrize("variant", ["plain", "copy_match"])
+def test_bit_loss_weight_adds_the_bit_loss_in_training_only(variant):
+    model = variant_model(variant)
+    config = model.config
+    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
+    x = labels.masked_fill(torch.rand(labels.shape, generator=torch.Generator().manual_seed(1)) < 0.6,
+                           config.mask_token_id)
+    batch, recipe = MaskGITBatch(x, labels), TrainingRecipe(bit_loss_weight=0.5)
+    reference = full_logits_loss(model.eval(), batch)
+    torch.testing.assert_close(model(batch, recipe).loss, reference.loss)  # evaluation: the CE alone
+    model.train()
+    with_bits = model(batch, recipe)
+    relevant = x == config.mask_token_id
+    relevant[:, 0] = False
+    logits_NVF = rearrange(model.logits(x), "B V F T H W -> (B T H W) V F")[relevant.flatten()]
+    bits = objectives.bit_loss(logits_NVF, labels[relevant]).mean()
+    assert bits > 1
+    torch.testing.assert_close(with_bits.loss, reference.loss + 0.5 * bits)
+    torch.testing.assert_close(with_bits.acc, reference.acc)
+    with_bits.loss.backward()
+    assert model.out_x_proj.weight.grad.abs().sum() > 0
+    if model.copy_head is not None:
+        assert model.copy_head.score_proj.weight.grad.abs().sum() > 0
 
 
 def test_context_noise_input_tells_the_model_each_frames_level_and_is_absent_at_level_zero():

@@ -185,6 +185,7 @@ def test_checkpoints_total_limit_and_latest(tiny_data, tmp_path):
     ({"T": 8, "num_prompt_frames": 2}, None, "window_size 4 must equal .* T=8"),
     ({"S": 64}, None, "4x4 = 16 tokens .* S=64"),
     ({"image_vocab_size": 1024}, None, "vocab_size 4096 differs .* 1024"),
+    ({"image_vocab_size": 900, "bit_loss_weight": 0.5}, None, "bit_loss_weight needs a power-of-two .* 30 values"),
 ])
 def test_data_config_mismatch_is_a_clear_error(tiny_data, tmp_path, override, data_key, pattern):
     config = write_config(tmp_path / "bad.json", **override)
