@@ -95,8 +95,9 @@ from common.images import psnr, ssim
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.actions import LATENT_ACTION_NAME, latent_action_sidecar, prepare_action_streams, window_actions
 from genie.config import check_dataset_matches
-from genie.copy_ceiling import ceiling_rollout
-from genie.metrics import RunningMean, bit_errors, factored_cross_entropy, images_to_unit_range, true_bit_probs
+from genie.copy_ceiling import ceiling_rollout, code_distances
+from genie.factorization import bits_of_power_of_two
+from genie.metrics import RunningMean, factored_cross_entropy, images_to_unit_range, true_bit_probs
 from genie.sampling import UNMASK_MODES
 from genie.inference import changed_share, generate, teacher_forced
 from genie.model import STMaskGIT
@@ -291,7 +292,7 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
     outputs: when a list, per-window frames (prompt | predictions | ground truth) are appended to it as numpy.
     """
     metrics = {name: RunningMean() for name in TEACHER_FORCED_KEYS}
-    num_bits = token_bits(model.config.image_vocab_size)
+    num_bits = bits_of_power_of_two(model.config.image_vocab_size)
     generator = torch.Generator(device=device).manual_seed(args.seed)
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
@@ -329,12 +330,6 @@ def evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.d
     return result
 
 
-def token_bits(vocab_size: int) -> Optional[int]:
-    """The bits of a token id (18 for the 2^18 LFQ codes), None for a vocabulary that is not a power of two."""
-    num_bits = vocab_size.bit_length() - 1
-    return num_bits if vocab_size > 1 and 1 << num_bits == vocab_size else None
-
-
 def add_bit_errors(metrics: dict, logits_BVFTHW: torch.Tensor, samples_BTHW: torch.Tensor, copies_BTHW: torch.Tensor,
                    targets_BTHW: torch.Tensor, num_bits: int) -> None:
     """Wrong bits per token: expected of a token drawn from the prediction (bit_err), of the evaluation's own
@@ -342,8 +337,8 @@ def add_bit_errors(metrics: dict, logits_BVFTHW: torch.Tensor, samples_BTHW: tor
     n = targets_BTHW.numel()
     logits_NVF = rearrange(logits_BVFTHW, "B V F T H W -> (B T H W) V F")
     metrics["bit_err"].update((1 - true_bit_probs(logits_NVF, targets_BTHW.flatten())).sum().item(), n)
-    metrics["pred_bit_err"].update(bit_errors(samples_BTHW, targets_BTHW, num_bits).sum().item(), n)
-    metrics["copy_bit_err"].update(bit_errors(copies_BTHW, targets_BTHW, num_bits).sum().item(), n)
+    metrics["pred_bit_err"].update(code_distances(samples_BTHW, targets_BTHW, num_bits).sum().item(), n)
+    metrics["copy_bit_err"].update(code_distances(copies_BTHW, targets_BTHW, num_bits).sum().item(), n)
 
 
 def score_frames(scorer: FrameScorer, pred_NHW: torch.Tensor, gt_NHW: torch.Tensor, metrics: dict,

@@ -54,6 +54,7 @@ from genie.actions import action_statistics, latent_action_sidecar, prepare_acti
 from genie.checkpoint import load_state_dict_checked
 from genie.compile import compile_for_training
 from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
+from genie.factorization import bits_of_power_of_two
 from genie.masking import MaskGITBatch, get_maskgit_collator
 from genie.model import STMaskGIT
 from common.files import remove_stale_temp_dirs
@@ -212,10 +213,10 @@ def load_config(path):
     """(GenieConfig, TrainingRecipe) of a --genie_config file (one JSON holds both, as the published one does)."""
     path = config_path(path)
     config, recipe = GenieConfig.from_pretrained(path), TrainingRecipe.from_pretrained(path)
-    V = config.factored_vocab_size
-    if recipe.bit_loss_weight > 0 and V & (V - 1):
+    if recipe.bit_loss_weight > 0 and bits_of_power_of_two(config.factored_vocab_size) is None:
         raise ConfigError(f"{path}: bit_loss_weight needs a power-of-two factored vocabulary (the bits of a token "
-                          f"id), but image_vocab_size {config.image_vocab_size} gives {V} values per factor")
+                          f"id), but image_vocab_size {config.image_vocab_size} gives {config.factored_vocab_size} "
+                          "values per factor")
     return config, recipe
 
 

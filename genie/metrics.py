@@ -45,12 +45,6 @@ def true_bit_probs(factored_NVF: torch.Tensor, targets_N: torch.Tensor) -> torch
     return torch.where(target_one_NFJ, p_one_NFJ, p_zero_NFJ)
 
 
-def bit_errors(ids_a: torch.Tensor, ids_b: torch.Tensor, num_bits: int) -> torch.Tensor:
-    """The number of differing bits (Hamming distance) of token ids of the same shape, each < 2^num_bits."""
-    differ = (ids_a ^ ids_b).unsqueeze(-1) >> torch.arange(num_bits, device=ids_a.device)
-    return (differ & 1).sum(-1)
-
-
 def token_accuracy(samples: torch.Tensor, targets: torch.Tensor) -> float:
     """Fraction of tokens where the sampled id equals the target id (same shapes)."""
     if samples.shape != targets.shape:
