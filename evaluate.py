@@ -87,7 +87,7 @@ from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
 from common.cli import (add_device_arg, add_num_threads_arg, add_stall_ratio_arg, add_token_choice_args,
-                        apply_num_threads, check_stall_ratio, finite_float, resolve_device, setup_logging)
+                        apply_cpu_settings, check_stall_ratio, finite_float, resolve_device, setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError, WriteError, writing
 from common.files import atomic_file
@@ -654,7 +654,7 @@ def run(args: argparse.Namespace) -> dict:
         raise EvaluationError(f"evaluation runs in a single process, but WORLD_SIZE={world_size}: launch it with "
                               f"plain `python evaluate.py` (not torchrun / accelerate launch with several processes)")
     device = resolve_device(args.device)
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     torch.manual_seed(args.seed)
     if args.protocol == "copy_ceiling":
         return run_copy_ceiling(args, device)

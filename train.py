@@ -45,7 +45,7 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import genie.configs
-from common.cli import (NO_NATIVE_BF16, add_num_threads_arg, apply_num_threads, check_optimizer_args,
+from common.cli import (NO_NATIVE_BF16, add_num_threads_arg, apply_cpu_settings, check_optimizer_args,
                         cpu_has_native_bf16, finite_float, setup_logging)
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
@@ -600,7 +600,7 @@ def setup_process_logging(accelerator: Accelerator) -> None:
 
 
 def run(args) -> None:
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     mixed = args.mixed_precision
     if mixed == "auto":
         mixed = "bf16" if torch.cuda.is_available() else "no"

@@ -22,7 +22,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from PIL import Image, ImageDraw, ImageFont
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
+from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import WriteError
 from common.files import atomic_file
@@ -278,7 +278,7 @@ def visualize_frames(model: VQModel, tokens: np.ndarray, out_dir: Path, offset: 
 def main(argv=None) -> None:
     setup_logging()
     args = parse_args(argv)
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     try:
         dataset = RawTokenDataset(args.token_dir, window_size=1, filter_interrupts=False)
         tokens, metadata = dataset.data, dataset.metadata

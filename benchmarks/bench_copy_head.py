@@ -23,7 +23,7 @@ import time
 import torch
 from einops import rearrange
 
-from common.cli import add_num_threads_arg, apply_num_threads
+from common.cli import add_num_threads_arg, apply_cpu_settings
 from genie.copy_head import CopyHead
 from genie.reference import dense_copy_mixture
 from genie.sampling import sample_factored_tokens, sample_mixture_tokens
@@ -70,7 +70,7 @@ def timed(fn, repeats: int, train: bool) -> float:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     head, logits_NVF, hidden_NC, sources_NK = make_inputs(args)
     print(f"N {args.num_tokens} tokens, K {head.num_sources} neighbours, 2 x 512 factors, "
           f"{torch.get_num_threads()} threads")

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import genie
-from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device
+from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device
 from data import RawTokenDataset, write_token_dataset
 from genie import GenieConfig, STMaskGIT
 from genie.metrics import factored_cross_entropy
@@ -131,7 +131,7 @@ def sync(device):
 
 def main():
     args = parse_args()
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     model = build_model(args).to(device)

@@ -6,6 +6,9 @@
     python benchmarks/bench_train.py --optimizer compare        # AdamW vs Muon + AdamW (train.py --optimizer)
     python benchmarks/bench_train.py --genie_config genie/configs/sample_world.json --profile   # the CPU default
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
+    python benchmarks/bench_allocator.py --genie_config genie/configs/sample_world_actions.json --optimizer muon
+                                                           # glibc's allocator defaults vs retained memory
+                                                           # (GENIE_DEFAULT_MALLOC=1: this script with glibc's)
 
 A step is what train.py does per optimizer step: MaskGIT collation of a batch of windows, forward, backward,
 gradient clipping and the optimizer train.py builds (AdamW unless --optimizer muon); with --genie_config, under that
@@ -17,9 +20,14 @@ import argparse
 import time
 from typing import Optional
 
+try:
+    import resource
+except ImportError:  # not a Unix
+    resource = None
+
 import torch
 
-from common.cli import (NO_NATIVE_BF16, add_device_arg, add_num_threads_arg, apply_num_threads, cpu_has_native_bf16,
+from common.cli import (NO_NATIVE_BF16, add_device_arg, add_num_threads_arg, apply_cpu_settings, cpu_has_native_bf16,
                         resolve_device)
 from common.muon import build_optimizer
 from genie.actions import LATENT_ACTION_NAME
@@ -131,11 +139,13 @@ def measure(args, device, mixed_precision: str, math_path: bool, full_readout: b
                      mixed_precision, full_readout, recipe)
     for _ in range(args.warmup_steps):
         step()
+    faults0 = minor_page_faults()
     t0, cpu0 = time.perf_counter(), time.process_time()
     for _ in range(args.steps):
         step()
     seconds = (time.perf_counter() - t0) / args.steps
     cpu_seconds = (time.process_time() - cpu0) / args.steps  # all threads: compare with wall time on busy machines
+    faults = None if faults0 is None else (minor_page_faults() - faults0) / args.steps
     tokens_per_s = args.batch_size * config.T * config.S / seconds
     label = "fp32" if mixed_precision == "no" else "bf16" if device.type != "cpu" else \
         f"bf16 ({'written-out temporal' if math_path else 'fused'} attention)"
@@ -143,7 +153,8 @@ def measure(args, device, mixed_precision: str, math_path: bool, full_readout: b
     label += ", Muon + AdamW" if optimizer_name == "muon" else ""
     print(f"{label:>42}: {seconds:.3f} s/step (process CPU time {cpu_seconds:.3f} s/step), "
           f"{tokens_per_s:,.0f} tokens/s, {tokens_per_s / PUBLISHED_TOKENS_PER_S:.2f}x the published "
-          f"{PUBLISHED_TOKENS_PER_S:,.0f} tokens/s", flush=True)
+          f"{PUBLISHED_TOKENS_PER_S:,.0f} tokens/s"
+          + ("" if faults is None else f", {faults:,.0f} minor page faults per step"), flush=True)
     if args.profile:
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
             step()
@@ -151,12 +162,17 @@ def measure(args, device, mixed_precision: str, math_path: bool, full_readout: b
     return seconds
 
 
+def minor_page_faults() -> Optional[int]:
+    """This process's minor page faults so far (pages the kernel mapped in without I/O), None where unknown."""
+    return None if resource is None else resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
 def main(argv=None) -> None:
     args = parse_args(argv)
     if [args.readout, args.mixed_precision, args.optimizer].count("compare") > 1:
         raise SystemExit("bench_train.py: compare one thing at a time (--readout, --mixed_precision or --optimizer)")
     device = resolve_device(args.device)
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     config, recipe, model = build(args, device)[:3]
     params = sum(p.numel() for p in model.parameters())
     print(f"STMaskGIT {config.num_layers} layers, d_model {config.d_model}, T {config.T}, {config.H}x{config.W}, "

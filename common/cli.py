@@ -6,6 +6,8 @@ from pathlib import Path
 
 import torch
 
+from common.allocator import retain_freed_memory
+
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 LOG_DATE_FORMAT = "%H:%M:%S"
 
@@ -168,7 +170,11 @@ def add_num_threads_arg(parser) -> None:
                              "two cores")
 
 
-def apply_num_threads(num_threads: int) -> None:
+def apply_cpu_settings(num_threads: int) -> None:
+    """A script's process-wide CPU settings, applied at the start of its main(): torch's thread count (0: torch's
+    default) and an allocator that keeps freed memory for the next step's tensors (common/allocator.py; glibc's
+    defaults where the environment opts out)."""
+    retain_freed_memory()
     if num_threads > 0:
         torch.set_num_threads(num_threads)
 

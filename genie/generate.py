@@ -29,7 +29,7 @@ from einops import rearrange
 from tqdm.auto import tqdm
 
 from common.cli import (add_device_arg, add_num_threads_arg, add_stall_ratio_arg, add_token_choice_args,
-                        apply_num_threads, check_stall_ratio, finite_float, resolve_device, setup_logging)
+                        apply_cpu_settings, check_stall_ratio, finite_float, resolve_device, setup_logging)
 from common.config import ConfigError
 from common.errors import CheckpointError, DataMismatchError
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
@@ -204,7 +204,7 @@ def played_latent_actions(latent_BT: torch.Tensor, args, K: int) -> torch.Tensor
 def generate(args) -> dict:
     """Run generation; returns the metadata written."""
     device = resolve_device(args.device)
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device)
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride)
     check_compatible(model, dataset, args)

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
+from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, setup_logging
 from common.config import load_json
 from common.errors import WriteError, input_error_exit
 from common.files import atomic_file
@@ -87,7 +87,7 @@ def fill_codes(segment_ids: np.ndarray, targets: np.ndarray, codes: np.ndarray,
 
 
 def label(args) -> dict:
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     device = resolve_device(args.device)
     model = LAM.from_pretrained(args.lam_dir, device=device).eval()
     cfg = model.config

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from common.cli import (add_device_arg, add_num_threads_arg, apply_num_threads, check_optimizer_args, finite_float,
+from common.cli import (add_device_arg, add_num_threads_arg, apply_cpu_settings, check_optimizer_args, finite_float,
                         resolve_device, setup_logging)
 from common.config import load_json
 from common.errors import WriteError, input_error_exit
@@ -137,7 +137,7 @@ def probe_metrics(model: LAM, train: dict, train_frames: torch.Tensor, train_tar
 
 
 def train(args) -> dict:
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.cli import add_device_arg, add_hidden_alias, add_num_threads_arg, apply_num_threads, resolve_device
+from common.cli import add_device_arg, add_hidden_alias, add_num_threads_arg, apply_cpu_settings, resolve_device
 from data.sample_world import (MAP_NAMES_HELP, TRAIN_MAPS, VAL_MAPS, WorldConfig, build_sample_world, mirror_split,
                                save_split)
 from magvit2.model import VQModel
@@ -153,7 +153,7 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     out = Path(args.output_dir)
     raw = out / "raw"
     build_sample_world(raw, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,

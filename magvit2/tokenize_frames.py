@@ -22,7 +22,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_num_threads, resolve_device, setup_logging
+from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, setup_logging
 from common.config import ConfigError
 from common.errors import WriteError
 from data import TokenDatasetError, TokenDatasetWriter
@@ -309,7 +309,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> None:
     setup_logging()
     args = parse_args(argv)
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     try:
         episodes = describe_inputs(args.inputs)
         output_dir = Path(args.output_dir)

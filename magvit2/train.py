@@ -43,7 +43,7 @@ from safetensors.torch import load_file, save_file
 from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
-from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_num_threads, check_optimizer_args,
+from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_cpu_settings, check_optimizer_args,
                         finite_float, resolve_device, setup_logging)
 from common.errors import TrainingError, WriteError, writing
 from common.files import remove_stale_temp_dirs, write_json_atomic
@@ -576,7 +576,7 @@ class Trainer:
 
 def run(args) -> Dict[str, float]:
     """Train as configured by `args` (see parse_args); returns the final metrics (also in eval_results.json)."""
-    apply_num_threads(args.num_threads)
+    apply_cpu_settings(args.num_threads)
     return Trainer(args).fit()
 
 

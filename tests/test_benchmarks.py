@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
@@ -48,6 +49,29 @@ def test_bench_train_optimizer_compare_steps_both_optimizers(capsys):
     load("bench_train").main([*TINY_TRAIN_STEP, "--optimizer", "compare"])
     out = capsys.readouterr().out
     assert "fp32:" in out and "fp32, Muon + AdamW:" in out and "Muon + AdamW vs AdamW:" in out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="page faults are counted on Linux")
+def test_bench_allocator_times_both_allocators_each_in_its_own_process(capsys):
+    load("bench_allocator").main([*TINY_TRAIN_STEP, "--rounds", "1"])
+    out = capsys.readouterr().out
+    assert out.count("default:") == 1 and out.count("retain:") == 1
+    assert out.count("minor page faults per step") == 2 and "train: retained memory vs glibc's defaults:" in out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="page faults are counted on Linux")
+def test_bench_allocator_tokenizes_frames_under_both_allocators(capsys, tmp_path):
+    frames = tmp_path / "frames.npz"
+    np.savez(frames, frames=np.random.default_rng(0).integers(0, 256, (4, 64, 64, 3), dtype=np.uint8))
+    load("bench_allocator").main(["--workload", "tokenize", "--frames", str(frames), "--rounds", "1"])
+    out = capsys.readouterr().out
+    assert out.count("minor page faults") == 2 and "tokenize: retained memory vs glibc's defaults:" in out
+
+
+def test_bench_allocator_needs_frames_to_tokenize(capsys, tmp_path):
+    with pytest.raises(SystemExit):
+        load("bench_allocator").main(["--workload", "tokenize", "--frames", str(tmp_path / "missing.npz")])
+    assert "needs --frames" in capsys.readouterr().err
 
 
 def test_bench_copy_head_times_three_mixtures_that_agree(capsys):
