@@ -23,9 +23,9 @@ import time
 from pathlib import Path
 
 from common.allocator import OPT_OUT_ENV
+from magvit2.build_sample import SHIPPED_TOKENIZER, resolve_tokenizer
 
 BENCH_TRAIN = Path(__file__).with_name("bench_train.py")
-SHIPPED_TOKENIZER = Path(__file__).resolve().parents[1] / "magvit2" / "pretrained" / "sample_world_64"
 TRAIN_LINE = re.compile(r"([0-9.]+) s/step .*?([0-9,]+) minor page faults per step")
 
 
@@ -38,7 +38,7 @@ def parse_args(argv=None):
                    help="train: bench_train.py's training steps; tokenize: magvit2.tokenize_frames on --frames")
     p.add_argument("--frames", type=Path, default=None,
                    help="tokenize: an .npz of frames (e.g. data/sample/raw/val.npz, which ./build.sh renders)")
-    p.add_argument("--tokenizer_ckpt", type=Path, default=SHIPPED_TOKENIZER, help="tokenize: the tokenizer")
+    p.add_argument("--tokenizer_ckpt", default=SHIPPED_TOKENIZER, help="tokenize: the tokenizer's directory")
     p.add_argument("--rounds", type=int, default=2,
                    help="Pairs of runs (each pair one of each allocator, the order alternating)")
     args, passthrough = p.parse_known_args(argv)
@@ -62,20 +62,21 @@ def run(args, allocator: str, passthrough, out_dir: Path) -> float:
         command = [sys.executable, str(BENCH_TRAIN), *passthrough]
     else:
         command = [sys.executable, "-m", "magvit2.tokenize_frames", str(args.frames), "--tokenizer_ckpt",
-                   str(args.tokenizer_ckpt), "--output_dir", str(out_dir), "--overwrite", *passthrough]
+                   str(resolve_tokenizer(args.tokenizer_ckpt)), "--output_dir", str(out_dir), "--overwrite",
+                   *passthrough]
     faults0, t0 = child_faults(), time.perf_counter()
     out = subprocess.run(command, env=env, capture_output=True, text=True)
-    seconds, faults = time.perf_counter() - t0, child_faults() - faults0
     if out.returncode != 0:
         raise SystemExit(f"{' '.join(command[1:3])} ({allocator} allocator) failed:\n{out.stderr[-2000:]}")
-    if args.workload == "train":
-        match = TRAIN_LINE.search(out.stdout)
-        if match is None:
-            raise SystemExit(f"bench_train.py printed no step time with page faults:\n{out.stdout}")
-        seconds, faults = float(match.group(1)), float(match.group(2).replace(",", ""))
-        print(f"{allocator:>8}: {seconds:.3f} s/step, {faults:,.0f} minor page faults per step", flush=True)
-    else:
+    if args.workload == "tokenize":  # the whole process, timed from here
+        seconds, faults = time.perf_counter() - t0, child_faults() - faults0
         print(f"{allocator:>8}: {seconds:.2f} s, {faults:,.0f} minor page faults", flush=True)
+        return seconds
+    match = TRAIN_LINE.search(out.stdout)  # the timed steps, as bench_train.py measured them
+    if match is None:
+        raise SystemExit(f"bench_train.py printed no step time with page faults:\n{out.stdout}")
+    seconds, faults = float(match.group(1)), float(match.group(2).replace(",", ""))
+    print(f"{allocator:>8}: {seconds:.3f} s/step, {faults:,.0f} minor page faults per step", flush=True)
     return seconds
 
 

@@ -4,9 +4,9 @@ not fault in fresh pages every step.
 PyTorch's CPU tensors come from malloc. glibc serves an allocation above its mmap threshold (128 KiB at first,
 raised on the fly up to 32 MiB) with a fresh mmap, and trims the heap top back to the kernel once more than twice
 that threshold is free. Either way a tensor of a few MiB allocated again on the next step lands on pages the kernel
-has to fault in and zero again: on the sample world's training step about 21,000 minor page faults (84 MiB) per step,
-4-5 % of its time on a 2-core AVX-512 Xeon (`benchmarks/bench_train.py` prints the faults; the same step with these
-settings faults about 550 times). Setting the mmap threshold to glibc's ceiling and switching trimming off keeps
+has to fault in and zero again: on the main command's training step 21,000-30,000 minor page faults per step, whose
+removal makes the step 1.09x faster on a 2-core AVX-512 Xeon (`benchmarks/bench_allocator.py`; `bench_train.py`
+prints the faults: under 350 per step with these settings). Setting the mmap threshold to glibc's ceiling and switching trimming off keeps
 freed blocks in the heap, where the next step's tensors of the same sizes find them. Nothing numerical changes:
 every tensor still gets its own 64-byte aligned buffer and every operation the same inputs.
 
