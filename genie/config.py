@@ -16,6 +16,8 @@ from typing import List, Optional
 from common.config import ConfigError, dataclass_from_dict, load_json
 from common.errors import DataMismatchError
 
+MLP_ACTIVATIONS = ("gelu", "relu2", "swiglu")
+
 
 @dataclass
 class GenieConfig:
@@ -72,6 +74,9 @@ class GenieConfig:
     # An input of how corrupted each context frame is (TrainingRecipe.context_noise_ratio): + level * a learned
     # vector on every token of the frame. Inference passes clean or generated frames at level 0, so it adds nothing.
     context_noise_input: bool = False
+    # The MLP's nonlinearity (genie/transformer.py `Mlp`): "gelu" (published), "relu2" (ReLU squared, the same
+    # parameters) or "swiglu" (a gated SiLU at 2/3 of the hidden width; fc1 twice as wide as its output).
+    mlp_activation: str = "gelu"
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -92,6 +97,9 @@ class GenieConfig:
         if not 1 <= self.num_prompt_frames < self.T:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         self._check_actions()
+        if self.mlp_activation not in MLP_ACTIVATIONS:
+            raise ConfigError(f"GenieConfig: mlp_activation must be one of {MLP_ACTIVATIONS}, "
+                              f"got {self.mlp_activation!r}")
         for name in ("spatial_rope", "temporal_rope"):
             if getattr(self, name) and (self.d_model // self.num_heads) % 4:
                 raise ConfigError(f"GenieConfig: {name} needs a head width (d_model / num_heads = "

@@ -40,16 +40,32 @@ class TemporalMode(enum.Enum):
 
 
 class Mlp(nn.Module):
-    def __init__(self, d_model: int, mlp_ratio: float = 4.0, mlp_bias: bool = True, mlp_drop: float = 0.0) -> None:
+    """The block's MLP. `activation` "gelu" is the published one; "relu2" squares a ReLU (no new parameters);
+    "swiglu" gates SiLU(a) * b, with fc1 producing both halves at 2/3 of the hidden width, so the parameters stay
+    about those of the GELU MLP."""
+
+    def __init__(self, d_model: int, mlp_ratio: float = 4.0, mlp_bias: bool = True, mlp_drop: float = 0.0,
+                 activation: str = "gelu") -> None:
         super().__init__()
         hidden = int(d_model * mlp_ratio)
-        self.fc1 = nn.Linear(d_model, hidden, bias=mlp_bias)
-        self.act = nn.GELU()
+        self.activation = activation
+        if activation == "swiglu":
+            hidden = int(hidden * 2 / 3)
+        self.fc1 = nn.Linear(d_model, 2 * hidden if activation == "swiglu" else hidden, bias=mlp_bias)
+        self.act = nn.GELU() if activation == "gelu" else nn.Identity()
         self.fc2 = nn.Linear(hidden, d_model, bias=mlp_bias)
         self.drop = nn.Dropout(mlp_drop)
 
+    def _hidden(self, h: torch.Tensor) -> torch.Tensor:
+        if self.activation == "relu2":
+            return torch.relu(h).square()
+        if self.activation == "swiglu":
+            a, b = h.chunk(2, dim=-1)
+            return nn.functional.silu(a) * b
+        return self.act(h)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.drop(self.fc2(self.drop(self.act(self.fc1(x)))))
+        return self.drop(self.fc2(self.drop(self._hidden(self.fc1(x)))))
 
 
 class STBlock(nn.Module):
@@ -63,7 +79,7 @@ class STBlock(nn.Module):
         self.spatial_attn = SelfAttention(**attn_kwargs)
         self.temporal_attn = SelfAttention(**attn_kwargs)
         self.norm2 = nn.Identity() if config.qk_norm else nn.LayerNorm(config.d_model, eps=1e-5)
-        self.mlp = Mlp(config.d_model, config.mlp_ratio, config.mlp_bias, config.mlp_drop)
+        self.mlp = Mlp(config.d_model, config.mlp_ratio, config.mlp_bias, config.mlp_drop, config.mlp_activation)
         self.rope = config.spatial_rope
         head_dim = config.d_model // config.num_heads
         if self.rope:  # not saved: the weights' layout is the same with or without

@@ -762,3 +762,53 @@ def test_bf16_cpu_attention_path_matches_fused_fp32(mask):
     got.float().square().sum().backward()
     for grad, t in zip(grads, (q, k, v)):
         assert F.cosine_similarity(t.grad.flatten(), grad.flatten(), 0) > 0.99
+
+
+@pytest.mark.parametrize("activation", ["gelu", "relu2", "swiglu"])
+def test_mlp_activation_computes_its_formula_from_fc1_and_fc2(activation):
+    from genie.transformer import Mlp
+    torch.manual_seed(0)
+    mlp = Mlp(16, activation=activation)
+    x = torch.randn(3, 5, 16)
+    h = F.linear(x, mlp.fc1.weight, mlp.fc1.bias)
+    if activation == "gelu":
+        hidden = F.gelu(h)
+    elif activation == "relu2":
+        hidden = h.clamp(min=0) ** 2
+    else:
+        a, b = h[..., :h.shape[-1] // 2], h[..., h.shape[-1] // 2:]
+        hidden = a * torch.sigmoid(a) * b
+    torch.testing.assert_close(mlp(x), F.linear(hidden, mlp.fc2.weight, mlp.fc2.bias))
+
+
+def test_relu2_keeps_the_published_layout_and_swiglu_about_its_size():
+    shapes = {a: {k: tuple(v.shape) for k, v in STMaskGIT(tiny_config(mlp_activation=a)).state_dict().items()}
+              for a in ("gelu", "relu2", "swiglu")}
+    assert shapes["relu2"] == shapes["gelu"]
+    assert shapes["swiglu"].keys() == shapes["gelu"].keys()
+    d, hidden = 32, int(32 * 4 * 2 / 3)
+    assert shapes["swiglu"]["decoder.layers.0.mlp.fc1.weight"] == (2 * hidden, d)
+    assert shapes["swiglu"]["decoder.layers.0.mlp.fc2.weight"] == (d, hidden)
+    sizes = {a: sum(math.prod(s) for s in v.values()) for a, v in shapes.items()}
+    assert abs(sizes["swiglu"] - sizes["gelu"]) < 0.01 * sizes["gelu"]
+
+
+def test_mlp_activation_changes_the_logits_and_survives_a_checkpoint(tmp_path):
+    from genie.checkpoint import save_model
+    config = tiny_config(mlp_activation="relu2")
+    model = sharp_readout_model(config).eval()
+    gelu_model = STMaskGIT(tiny_config()).eval()
+    gelu_model.load_state_dict(model.state_dict())
+    inputs = random_tokens(config, B=1, T=4)
+    with torch.no_grad():
+        logits = model.logits(inputs)
+        assert not torch.allclose(gelu_model.logits(inputs), logits)
+        save_model(model, tmp_path / "ckpt")
+        assert json.loads((tmp_path / "ckpt" / "config.json").read_text())["mlp_activation"] == "relu2"
+        loaded = STMaskGIT.from_pretrained(tmp_path / "ckpt").eval()
+        torch.testing.assert_close(loaded.logits(inputs), logits)
+
+
+def test_unknown_mlp_activation_is_a_config_error():
+    with pytest.raises(ConfigError, match="mlp_activation must be one of .*'tanh'"):
+        tiny_config(mlp_activation="tanh")
