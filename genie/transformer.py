@@ -39,6 +39,20 @@ class TemporalMode(enum.Enum):
     TARGETS = "targets"
 
 
+def relu_squared(h: torch.Tensor) -> torch.Tensor:
+    return torch.relu(h).square()
+
+
+def swiglu(h: torch.Tensor) -> torch.Tensor:
+    """SiLU(a) * b over the two halves of the last axis."""
+    a, b = h.chunk(2, dim=-1)
+    return nn.functional.silu(a) * b
+
+
+# GenieConfig.mlp_activation -> the nonlinearity between fc1 and fc2
+MLP_NONLINEARITIES = {"gelu": nn.functional.gelu, "relu2": relu_squared, "swiglu": swiglu}
+
+
 class Mlp(nn.Module):
     """The block's MLP. `activation` "gelu" is the published one; "relu2" squares a ReLU (no new parameters);
     "swiglu" gates SiLU(a) * b, with fc1 producing both halves at 2/3 of the hidden width, so the parameters stay
@@ -48,24 +62,16 @@ class Mlp(nn.Module):
                  activation: str = "gelu") -> None:
         super().__init__()
         hidden = int(d_model * mlp_ratio)
-        self.activation = activation
-        if activation == "swiglu":
+        gated = activation == "swiglu"
+        if gated:
             hidden = int(hidden * 2 / 3)
-        self.fc1 = nn.Linear(d_model, 2 * hidden if activation == "swiglu" else hidden, bias=mlp_bias)
-        self.act = nn.GELU() if activation == "gelu" else nn.Identity()
+        self.fc1 = nn.Linear(d_model, 2 * hidden if gated else hidden, bias=mlp_bias)
+        self.act = MLP_NONLINEARITIES[activation]
         self.fc2 = nn.Linear(hidden, d_model, bias=mlp_bias)
         self.drop = nn.Dropout(mlp_drop)
 
-    def _hidden(self, h: torch.Tensor) -> torch.Tensor:
-        if self.activation == "relu2":
-            return torch.relu(h).square()
-        if self.activation == "swiglu":
-            a, b = h.chunk(2, dim=-1)
-            return nn.functional.silu(a) * b
-        return self.act(h)
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.drop(self.fc2(self.drop(self._hidden(self.fc1(x)))))
+        return self.drop(self.fc2(self.drop(self.act(self.fc1(x)))))
 
 
 class STBlock(nn.Module):
