@@ -6,6 +6,7 @@
     python train.py ... --use_actions buttons,driving_command  # condition on real actions (actions/<name>.bin)
     python train.py ... --use_actions buttons,driving_command --action_step_mean  # ... averaged over each window step
     python train.py ... --use_latent_actions 8                 # condition on LAM latent actions (latent_action.bin)
+    python train.py ... --ema_decay 0.995                      # final_checkpt: a moving average of the weights
     accelerate launch --multi_gpu --num_processes 2 train.py ...   # DDP: NCCL on GPUs, gloo on a CPU-only machine
     torchrun --nproc_per_node 2 train.py ...                       # the same without accelerate's launcher
 
@@ -47,6 +48,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 import genie.configs
 from common.cli import (NO_NATIVE_BF16, add_num_threads_arg, apply_cpu_settings, check_optimizer_args,
                         cpu_has_native_bf16, finite_float, setup_logging)
+from common.ema import WeightAverage
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
@@ -59,9 +61,10 @@ from genie.masking import MaskGITBatch, get_maskgit_collator
 from genie.model import STMaskGIT
 from common.files import remove_stale_temp_dirs
 from common import muon
-from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
-                               checkpoint_dir, list_checkpoints, load_training_checkpoint, prune_checkpoints,
-                               resolve_resume_path, restore_rng_state, resume_hint, save_training_checkpoint)
+from common.train_state import (EMA_DIR, TrainingStateError, ResumableBatchSampler, atomic_directory,
+                               capture_rng_state, checkpoint_dir, list_checkpoints, load_training_checkpoint,
+                               prune_checkpoints, resolve_resume_path, restore_rng_state, resume_hint,
+                               save_training_checkpoint)
 
 logger = logging.getLogger("train")
 
@@ -133,6 +136,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--max_train_steps", type=int, default=None,
                    help="Optimizer steps to train; overrides --num_train_epochs.")
     g.add_argument("--num_train_epochs", type=int, default=1, help="Epochs to train when --max_train_steps is unset.")
+    g.add_argument("--ema_decay", type=finite_float, default=0.0,
+                   help="Keep an exponential moving average of the weights with this decay (e.g. 0.995: about the "
+                        "last 200 steps, ramped up from 0.18 over the first steps: common/ema.py) and write it as "
+                        "final_checkpt; the periodic validation scores the average too, and each checkpoint-<step>/ "
+                        "keeps the raw weights with the average in its ema/ folder, so a resumed run continues "
+                        "both. 0 (the default): no average, final_checkpt holds the last step's weights.")
     g.add_argument("--max_grad_norm", type=finite_float, default=1.0,
                    help="Gradient clipping norm (<= 0: no clipping).")
     g.add_argument("--max_nonfinite_steps", type=int, default=5,
@@ -187,6 +196,8 @@ def parse_args(argv=None) -> argparse.Namespace:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     check_optimizer_args(p, args, rates=("learning_rate", "adam_eps"),
                          betas=("adam_beta_1", "adam_beta_2", "muon_momentum"))
+    if not 0.0 <= args.ema_decay < 1.0:
+        p.error(f"--ema_decay must be in [0, 1) (0: no average), got {args.ema_decay}")
     if args.max_diverged_steps < 0:
         p.error(f"--max_diverged_steps must be >= 0, got {args.max_diverged_steps}")
     if args.max_train_steps is not None and args.max_train_steps < 0:
@@ -348,6 +359,7 @@ class Trainer:
         self.consecutive_diverged = 0
         self.diverged_loss = 2 * math.log(config.image_vocab_size)
         self.last_saved_step = None
+        self.ema = WeightAverage(self.model, args.ema_decay) if args.ema_decay > 0 else None
         self.resume()
         self.ddp_model, self.ddp_optimizer = accelerator.prepare(self.model, self.optimizer)
         if self.use_compile():
@@ -364,7 +376,7 @@ class Trainer:
                 "world_size": self.world, "seed": self.args.seed, "num_train_windows": len(self.train_ds),
                 "per_device_train_batch_size": self.args.per_device_train_batch_size,
                 "gradient_accumulation_steps": self.args.gradient_accumulation_steps,
-                "args": dict(vars(self.args))}
+                "args": dict(vars(self.args)), **({"ema_updates": self.ema.updates} if self.ema else {})}
 
     def save_checkpoint(self) -> None:
         """All processes call this (RNG states are gathered); only the main process writes."""
@@ -372,7 +384,8 @@ class Trainer:
         if self.accelerator.is_main_process:
             path = checkpoint_dir(self.args.output_dir, self.step)
             save_training_checkpoint(path, self.model, self.optimizer, self.trainer_state(), rng_states,
-                                     model_kwargs={"recipe": self.recipe})
+                                     model_kwargs={"recipe": self.recipe},
+                                     extra_models={EMA_DIR: self.ema.model} if self.ema else None)
             prune_checkpoints(self.args.output_dir, self.args.checkpoints_total_limit)
             logger.info("saved training state to %s", path)
         self.last_saved_step = self.step
@@ -406,9 +419,24 @@ class Trainer:
             logger.warning("resuming with a different seed, dataset, batch size or process count than %s: training "
                            "continues from step %d but the data order differs from the interrupted run", path,
                            self.step)
+        self.resume_average(path, state)
         rng = ckpt["rng"]
         restore_rng_state(rng[self.rank] if len(rng) == self.world else rng[0])
         logger.info("resumed from %s at step %d (epoch %d)", path, self.step, state["epoch"])
+
+    def resume_average(self, path: Path, state: dict) -> None:
+        """Continue the checkpoint's weight average (--ema_decay); a checkpoint without one starts it from the
+        resumed weights."""
+        if self.ema is None:
+            return
+        average_path = path / EMA_DIR / "model.safetensors"
+        if average_path.is_file() and "ema_updates" in state:
+            load_model(self.ema.model, str(average_path), device=str(self.device))
+            self.ema.updates = state["ema_updates"]
+        else:
+            self.ema = WeightAverage(self.model, self.args.ema_decay)
+            logger.warning("%s holds no weight average: --ema_decay starts one from its weights at step %d", path,
+                           self.step)
 
     # ---- data
     def epoch_batches(self, epoch: int, start_batch: int):
@@ -455,6 +483,8 @@ class Trainer:
         finite, stop, diverged = bool(flags[0] == 0), bool(flags[1] > 0), bool(flags[2] > 0)
         if finite:
             self.ddp_optimizer.step()
+            if self.ema is not None:
+                self.ema.update(self.model)
         self.ddp_optimizer.zero_grad(set_to_none=True)
         self.scheduler.step()  # the schedule follows the data position, skipped steps included
         return grad_norm, finite, stop, diverged
@@ -496,7 +526,8 @@ class Trainer:
                                         self.rank, seed=0, drop_last=False)
         loader = DataLoader(self.val_ds, batch_sampler=sampler, collate_fn=keep_list, num_workers=0)
         collator = get_maskgit_collator(self.config, self.recipe, seed=self.args.seed)
-        model = self.model.eval()  # the plain module: no DDP hooks, no recompilation for eval mode
+        # the plain module (no DDP hooks, no recompilation for eval mode), or the average that final_checkpt gets
+        model = (self.ema.model if self.ema else self.model).eval()
         totals = torch.zeros(3, dtype=torch.float64, device=self.device)  # loss * B, acc * B, B
         for i, items in enumerate(loader):
             if 0 < self.args.max_eval_steps <= i:
@@ -507,7 +538,7 @@ class Trainer:
             n = len(items)
             totals += torch.stack([out.loss.double() * n, torch.as_tensor(out.acc).double().to(self.device) * n,
                                    torch.tensor(n, dtype=torch.float64, device=self.device)])
-        model.train()
+        self.model.train()
         if self.world > 1:
             totals = self.accelerator.reduce(totals, reduction="sum")
         return {"val_loss": (totals[0] / totals[2]).item(), "val_acc": (totals[1] / totals[2]).item()}
@@ -580,8 +611,13 @@ class Trainer:
         if self.accelerator.is_main_process:
             path = Path(self.args.output_dir) / "final_checkpt"
             with atomic_directory(path, "the final model") as tmp:
-                self.model.save_pretrained(tmp, recipe=self.recipe)
-            logger.info("saved the final model to %s", path)
+                (self.ema.model if self.ema else self.model).save_pretrained(tmp, recipe=self.recipe)
+            if self.ema:
+                logger.info("saved the weight average of %d steps (--ema_decay %g) to %s; the last step's own "
+                            "weights are in the newest checkpoint-<step>/ when checkpointing is on",
+                            self.ema.updates, self.ema.decay, path)
+            else:
+                logger.info("saved the final model to %s", path)
         self.accelerator.wait_for_everyone()
 
 

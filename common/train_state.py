@@ -5,6 +5,8 @@ A training checkpoint `checkpoint-<step>/` holds:
     optimizer.safetensors/.json      optimizer tensors + the rest of its state_dict (see `flatten_state`)
     rng.safetensors/.json            RNG states of every process (torch, CUDA, numpy, python)
     trainer_state.json               step, epoch, position in the epoch, lr scheduler state, run arguments
+    ema/                             the weight average (train.py --ema_decay, common/ema.py), a model directory like
+                                     the checkpoint's own; only in runs that keep one
     MANIFEST.json                    size + sha256 of every file above, checked on resume (common/integrity.py)
     COMPLETE                         written last; a directory without it is never resumed from
 Everything is written into a hidden temporary directory that is renamed into place once complete, so a kill at any
@@ -29,6 +31,7 @@ from common.integrity import verify_manifest
 
 CHECKPOINT_PREFIX = "checkpoint-"
 FORMAT_VERSION = 1
+EMA_DIR = "ema"  # a checkpoint's weight-average folder (train.py --ema_decay)
 _CHECKPOINT_RE = re.compile(rf"^{CHECKPOINT_PREFIX}(\d+)$")
 
 
@@ -249,12 +252,15 @@ def prune_checkpoints(output_dir, keep: int) -> None:
 
 
 def save_training_checkpoint(ckpt_dir, model, optimizer, trainer_state: dict, rng_states: list,
-                             model_kwargs: Optional[dict] = None) -> None:
+                             model_kwargs: Optional[dict] = None, extra_models: Optional[dict] = None) -> None:
     """Atomically write a full training checkpoint. `model` must have `save_pretrained(dir, **model_kwargs)`;
     `trainer_state` is JSON-serializable (step, epoch, scheduler state, ...); `rng_states` holds one
-    `capture_rng_state()` per process."""
+    `capture_rng_state()` per process; `extra_models` {folder name: model} are saved the same way in subfolders
+    (EMA_DIR: the weight average)."""
     with atomic_directory(ckpt_dir, "the training checkpoint") as tmp:
         model.save_pretrained(tmp, **(model_kwargs or {}))
+        for name, extra in (extra_models or {}).items():
+            extra.save_pretrained(tmp / name, **(model_kwargs or {}))
         save_state_files(tmp, "optimizer", optimizer.state_dict())
         save_state_files(tmp, "rng", rng_states)
         (tmp / "trainer_state.json").write_text(

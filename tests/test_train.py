@@ -17,7 +17,8 @@ from genie import GenieConfig, STMaskGIT
 from genie.compile import CPU_COMPILERS
 from genie.masking import get_maskgit_collator
 from genie.reference import full_logits_loss
-from common.train_state import (COMPLETE_MARKER, ResumableBatchSampler, list_checkpoints,
+from common.ema import WeightAverage
+from common.train_state import (COMPLETE_MARKER, EMA_DIR, ResumableBatchSampler, list_checkpoints,
                                load_training_checkpoint)
 
 TINY = {"num_layers": 2, "num_heads": 2, "d_model": 32, "T": 4, "S": 16, "image_vocab_size": 4096,
@@ -313,3 +314,62 @@ def test_cpu_bf16_without_native_support_warns(tiny_data, tmp_path, monkeypatch,
     with caplog.at_level("WARNING", logger="train"):
         train.main(train_argv(tiny_data, tmp_path, "--max_train_steps", "0", "--mixed_precision", "bf16"))
     assert ("emulated" in caplog.text) is warned
+
+
+def test_weight_average_follows_its_ramped_decay():
+    """common/ema.py: a_n = d_n a_(n-1) + (1 - d_n) w_n with d_n = min(decay, (1 + n) / (10 + n)), buffers copied."""
+    model = torch.nn.Linear(3, 2)
+    model.register_buffer("scale", torch.tensor([2.0]))
+    average = WeightAverage(model, decay=0.5)
+    expected = {name: p.detach().clone() for name, p in model.named_parameters()}
+    with torch.no_grad():
+        for n, value in enumerate((1.0, -2.0, 4.0), start=1):
+            assert average.current_decay() == min(0.5, (1 + n) / (10 + n))
+            for p in model.parameters():
+                p.fill_(value)
+            d = average.current_decay()
+            expected = {name: d * a + (1 - d) * value for name, a in expected.items()}
+            average.update(model)
+    assert average.updates == 3
+    for name, p in average.model.named_parameters():
+        torch.testing.assert_close(p, expected[name], rtol=0, atol=1e-6)
+        assert not p.requires_grad
+    assert torch.equal(average.model.scale, model.scale)
+    assert not any(p.data_ptr() == q.data_ptr() for p, q in zip(average.model.parameters(), model.parameters()))
+    with pytest.raises(ValueError, match="decay must be in"):
+        WeightAverage(model, decay=1.0)
+
+
+def test_ema_decay_writes_the_average_and_resumes_it_exactly(tiny_data, tmp_path):
+    full, resumed, plain = tmp_path / "full", tmp_path / "resumed", tmp_path / "plain"
+    extra = ("--max_train_steps", "6", "--checkpointing_steps", "2", "--checkpoints_total_limit", "0",
+             "--eval_every_n_steps", "3")
+    train.main(train_argv(tiny_data, full, *extra, "--ema_decay", "0.9"))
+    train.main(train_argv(tiny_data, plain, *extra))
+    final, raw = load_weights(full / "final_checkpt"), load_weights(full / "checkpoint-6")
+    assert_same_weights(final, load_weights(full / "checkpoint-6" / EMA_DIR))
+    assert_same_weights(raw, load_weights(plain / "final_checkpt"))  # the average leaves training alone
+    assert any(not torch.equal(final[k], raw[k]) for k in raw)
+    assert load_training_checkpoint(full / "checkpoint-6")["trainer"]["ema_updates"] == 6
+    assert not (plain / "checkpoint-6" / EMA_DIR).exists()
+    STMaskGIT.from_pretrained(full / "final_checkpt")
+
+    train.main(train_argv(tiny_data, resumed, *extra, "--ema_decay", "0.9",
+                          "--resume_from_checkpoint", str(full / "checkpoint-2")))
+    assert_same_weights(final, load_weights(resumed / "final_checkpt"))
+
+
+def test_ema_decay_from_a_checkpoint_without_an_average_starts_one(tiny_data, tmp_path, caplog):
+    train.main(train_argv(tiny_data, tmp_path / "plain", "--max_train_steps", "2", "--checkpointing_steps", "2"))
+    with caplog.at_level("WARNING", logger="train"):
+        train.main(train_argv(tiny_data, tmp_path / "averaged", "--max_train_steps", "4", "--ema_decay", "0.5",
+                              "--resume_from_checkpoint", str(tmp_path / "plain" / "checkpoint-2")))
+    assert "holds no weight average" in caplog.text
+    assert load_training_checkpoint(tmp_path / "averaged" / "checkpoint-4")["trainer"]["ema_updates"] == 2
+
+
+@pytest.mark.parametrize("value", ["1", "-0.1", "nan"])
+def test_ema_decay_out_of_range_is_a_usage_error(value, capsys):
+    with pytest.raises(SystemExit):
+        train.parse_args(["--ema_decay", value])
+    assert "--ema_decay" in capsys.readouterr().err
