@@ -35,6 +35,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -359,8 +360,8 @@ class Trainer:
         self.consecutive_diverged = 0
         self.diverged_loss = 2 * math.log(config.image_vocab_size)
         self.last_saved_step = None
-        self.ema = WeightAverage(self.model, args.ema_decay) if args.ema_decay > 0 else None
-        self.resume()
+        resumed = self.resume()
+        self.ema = self.weight_average(resumed) if args.ema_decay > 0 else None
         self.ddp_model, self.ddp_optimizer = accelerator.prepare(self.model, self.optimizer)
         if self.use_compile():
             self.ddp_model = compile_for_training(self.ddp_model, self.model, self.device)
@@ -391,12 +392,13 @@ class Trainer:
         self.last_saved_step = self.step
         self.accelerator.wait_for_everyone()
 
-    def resume(self) -> None:
+    def resume(self) -> Optional[tuple]:
+        """Load --resume_from_checkpoint's training state; returns (its path, its trainer state), or None."""
         path = resolve_resume_path(self.args.output_dir, self.args.resume_from_checkpoint)
         if path is None:
             if self.args.resume_from_checkpoint == "latest":
                 logger.info("no complete checkpoint in %s yet: starting from scratch", self.args.output_dir)
-            return
+            return None
         ckpt = load_training_checkpoint(path)
         differing = sorted(k for k, v in self.config.to_dict().items() if ckpt["config"].get(k) != v)
         if differing:
@@ -419,24 +421,30 @@ class Trainer:
             logger.warning("resuming with a different seed, dataset, batch size or process count than %s: training "
                            "continues from step %d but the data order differs from the interrupted run", path,
                            self.step)
-        self.resume_average(path, state)
         rng = ckpt["rng"]
         restore_rng_state(rng[self.rank] if len(rng) == self.world else rng[0])
         logger.info("resumed from %s at step %d (epoch %d)", path, self.step, state["epoch"])
+        return path, state
 
-    def resume_average(self, path: Path, state: dict) -> None:
-        """Continue the checkpoint's weight average (--ema_decay); a checkpoint without one starts it from the
-        resumed weights."""
-        if self.ema is None:
-            return
-        average_path = path / EMA_DIR / "model.safetensors"
-        if average_path.is_file() and "ema_updates" in state:
-            load_model(self.ema.model, str(average_path), device=str(self.device))
-            self.ema.updates = state["ema_updates"]
-        else:
-            self.ema = WeightAverage(self.model, self.args.ema_decay)
-            logger.warning("%s holds no weight average: --ema_decay starts one from its weights at step %d", path,
-                           self.step)
+    def weight_average(self, resumed: Optional[tuple]) -> WeightAverage:
+        """The --ema_decay average, from the (resumed) weights, continuing the resumed checkpoint's own when it has
+        one."""
+        average = WeightAverage(self.model, self.args.ema_decay)
+        if resumed is not None:
+            path, state = resumed
+            average_path = path / EMA_DIR / "model.safetensors"
+            if average_path.is_file() and "ema_updates" in state:
+                load_model(average.model, str(average_path), device=str(self.device))
+                average.updates = state["ema_updates"]
+            else:
+                logger.warning("%s holds no weight average: --ema_decay starts one from its weights at step %d",
+                               path, self.step)
+        return average
+
+    def final_model(self) -> STMaskGIT:
+        """What final_checkpt gets and validation scores: the weight average, or the plain module (no DDP hooks,
+        no recompilation for eval mode)."""
+        return self.ema.model if self.ema else self.model
 
     # ---- data
     def epoch_batches(self, epoch: int, start_batch: int):
@@ -526,8 +534,7 @@ class Trainer:
                                         self.rank, seed=0, drop_last=False)
         loader = DataLoader(self.val_ds, batch_sampler=sampler, collate_fn=keep_list, num_workers=0)
         collator = get_maskgit_collator(self.config, self.recipe, seed=self.args.seed)
-        # the plain module (no DDP hooks, no recompilation for eval mode), or the average that final_checkpt gets
-        model = (self.ema.model if self.ema else self.model).eval()
+        model = self.final_model().eval()
         totals = torch.zeros(3, dtype=torch.float64, device=self.device)  # loss * B, acc * B, B
         for i, items in enumerate(loader):
             if 0 < self.args.max_eval_steps <= i:
@@ -611,7 +618,7 @@ class Trainer:
         if self.accelerator.is_main_process:
             path = Path(self.args.output_dir) / "final_checkpt"
             with atomic_directory(path, "the final model") as tmp:
-                (self.ema.model if self.ema else self.model).save_pretrained(tmp, recipe=self.recipe)
+                self.final_model().save_pretrained(tmp, recipe=self.recipe)
             if self.ema:
                 logger.info("saved the weight average of %d steps (--ema_decay %g) to %s; the last step's own "
                             "weights are in the newest checkpoint-<step>/ when checkpointing is on",
