@@ -682,6 +682,10 @@ def run(args) -> None:
     try:
         trainer.train()
     finally:
+        # Free the DDP wrapper (its reducer holds the process group) while the interpreter is whole, then destroy
+        # the group: left to interpreter shutdown, gloo's threads can abort a finished run (SIGABRT, exit code 1).
+        del trainer
+        accelerator.free_memory()
         accelerator.end_training()
 
 
