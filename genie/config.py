@@ -180,6 +180,10 @@ class TrainingRecipe:
     # this share of the examples masks every 2nd or 3rd frame whole, as the challenge evaluates: each masked frame
     # is predicted from whole earlier frames, nothing of itself revealed
     whole_frame_mask_ratio: float = 0.0
+    # of those examples, this share starts its masked frames anywhere in 1..num_prompt_frames instead of within the
+    # first period, so that a target also follows a long run of clean frames, as a rollout's first generated frame
+    # follows its prompt (without it no target follows more than 3)
+    clean_prefix_ratio: float = 0.0
     # this share of the batches is two-stream: the clean window as context, every frame t >= 1 a target over
     # frames < t (the computation of the cached evaluation, with gradients)
     two_stream_ratio: float = 0.0

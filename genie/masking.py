@@ -15,16 +15,25 @@ def _uniform(low: float, high: float, size, generator) -> torch.Tensor:
     return low + (high - low) * torch.rand(size, generator=generator)
 
 
-def _whole_frame_masks(n: int, T: int, H: int, W: int, generator) -> torch.Tensor:
+def _whole_frame_masks(n: int, T: int, H: int, W: int, generator, clean_prefix_ratio: float = 0.0,
+                       max_first: int = 1) -> torch.Tensor:
     """(n, T, H, W) bool: every 2nd or every 3rd frame fully masked (random per example), from a random start.
 
     Every masked frame then follows a clean one, as every target does in the challenge's evaluation, and with
     period 3 it follows two, so the model also learns from the change between the last two frames (whether a token
     has just stayed put), which the evaluation always shows it. Independent coin flips per frame give fewer such
     targets and train two-step predictions (a masked frame after a masked one) that the evaluation never asks for.
+
+    The start lies within the first period, so no target follows more than 3 clean frames in a row. A share
+    clean_prefix_ratio of the examples starts at U{1, ..., max_first} instead: its first target follows up to
+    max_first whole frames, as a rollout's first generated frame follows its prompt.
     """
     period_n1 = 2 + torch.randint(0, 2, (n, 1), generator=generator)
-    first_n1 = 1 + (torch.rand(n, 1, generator=generator) * period_n1).long().clamp(max=T - 2)
+    first_n1 = 1 + (torch.rand(n, 1, generator=generator) * period_n1).long()
+    if clean_prefix_ratio > 0:  # drawn only when on, so the default's random stream is the published one
+        prefixed_n1 = torch.rand(n, 1, generator=generator) < clean_prefix_ratio
+        first_n1 = torch.where(prefixed_n1, torch.randint(1, max_first + 1, (n, 1), generator=generator), first_n1)
+    first_n1 = first_n1.clamp(max=T - 1)
     t_1T = torch.arange(T).unsqueeze(0)
     masked_nT = (t_1T >= first_n1) & ((t_1T - first_n1) % period_n1 == 0)
     return masked_nT[:, :, None, None].expand(n, T, H, W)
@@ -93,7 +102,8 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
        instead masked the way the challenge evaluates: every 2nd or 3rd frame is fully masked (`_whole_frame_masks`),
        the others keep their tokens with step 1's light corruption only (not step 2's). Each masked frame is then
        predicted from whole earlier frames, nothing of itself revealed, which the published masking rarely shows a
-       model (its frames are partly masked, and the frames before them too).
+       model (its frames are partly masked, and the frames before them too). recipe.clean_prefix_ratio of those
+       examples keeps a clean prefix of up to num_prompt_frames frames before its first masked frame.
     5. opt-in (recipe.context_noise_ratio > 0): that fraction of the examples has each frame >= 1 that is not
        wholly masked corrupted at a level ~ U(0, recipe.context_noise_max) of its own: each unmasked token replaced
        by a uniformly random token with that probability (`_context_noise`); the levels go to the batch
@@ -166,7 +176,8 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
         if lightly_corrupted_BTHWF is not None:
             forced_B = torch.rand(B, generator=g) < recipe.whole_frame_mask_ratio
             x_BTHWF[forced_B] = lightly_corrupted_BTHWF[forced_B]
-            mask_BTHW[forced_B] = _whole_frame_masks(int(forced_B.sum()), T, H, W, g)
+            mask_BTHW[forced_B] = _whole_frame_masks(int(forced_B.sum()), T, H, W, g, recipe.clean_prefix_ratio,
+                                                     config.num_prompt_frames)
         noise_BT = None
         if recipe.context_noise_ratio > 0:
             x_BTHWF, noise_BT = _context_noise(x_BTHWF, mask_BTHW, recipe, V, g)

@@ -24,7 +24,7 @@ def action_config(**overrides):
     return tiny_config(action_names=["a"], action_dim=3, **overrides)
 
 
-def make_features(batch_size, seed=0, actions=False):
+def make_features(batch_size, seed=0, actions=False, T=T):
     g = torch.Generator().manual_seed(seed)
     features = []
     for _ in range(batch_size):
@@ -179,6 +179,26 @@ def test_teacher_forced_examples_mask_whole_frames_over_clean_context(non_mlm_ra
         # kept frames are clean even when the batch drew the non-MLM corruption of later frames
         assert torch.equal(x[~masked], labels[~masked])
     assert first_targets == {1, 2, 3}  # every phase occurs
+
+
+@pytest.mark.parametrize("ratio", [0.5, 1.0])
+def test_clean_prefix_ratio_starts_whole_frame_masks_after_up_to_the_prompt(ratio):
+    """A share of the examples starts its periodic whole-frame masks anywhere in 1..num_prompt_frames, so a target
+    follows a long clean run (as a rollout's first frame follows its prompt); the masks keep their period."""
+    config = tiny_config(T=12, num_prompt_frames=6)
+    recipe = TrainingRecipe(whole_frame_mask_ratio=1.0, clean_prefix_ratio=ratio, max_corrupt_rate=0.0)
+    collate = get_maskgit_collator(config, recipe, seed=0)
+    firsts = []
+    for step in range(40):
+        batch = collate(make_features(8, T=12, seed=step))
+        whole = (frames(batch.input_ids) == config.mask_token_id).all(-1)
+        assert whole.any(dim=1).all() and not (whole[:, 1:] & whole[:, :-1]).any()
+        assert {int(g) for row in whole for g in torch.diff(torch.nonzero(row).flatten())} <= {2, 3}
+        firsts += whole.float().argmax(1).tolist()
+    counts = torch.bincount(torch.tensor(firsts), minlength=8)
+    assert counts[0] == 0 and counts[7:].sum() == 0 and (counts[1:7] > 0).all()
+    share_late = counts[4:7].sum().item() / len(firsts)  # starts the default's first period never reaches
+    assert abs(share_late - ratio * 3 / 6) < 0.08
 
 
 def test_whole_frame_mask_ratio_mixes_in_published_masking():

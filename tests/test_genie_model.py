@@ -506,10 +506,10 @@ def test_guess_temperature_reaches_the_training_loss():
     assert not torch.allclose(losses[0.0], losses[1.0])
 
 
-@pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio", "two_stream_ratio",
-                                   "two_stream_partial_ratio", "self_reveal_ratio", "own_context_ratio",
-                                   "guess_temperature", "context_noise_ratio", "context_noise_max",
-                                   "bit_loss_weight"])
+@pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio", "clean_prefix_ratio",
+                                   "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio",
+                                   "own_context_ratio", "guess_temperature", "context_noise_ratio",
+                                   "context_noise_max", "bit_loss_weight"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
         TrainingRecipe(**{field: 1.5})

@@ -134,15 +134,17 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
     groups = state["optimizer"]["param_groups"]
     assert {g["initial_lr"] for g in groups} == {3e-3}  # the recipe's learning rate, not the main command's
     assert {g["weight_decay"] for g in groups} == {0.0, 0.1}  # WEIGHT_DECAY reaches train.py through run_sample.sh
+    assert state["trainer"]["args"]["no_compile"]  # eager unless COMPILE=1
 
     # SKIP_BUILD=1: the world copied without its frames (raw/) trains as it is, after a check against its manifests
     copied = tmp_path / "copied"
     for split in ("train", "val"):
         shutil.copytree(tmp_path / "world" / split, copied / split)
-    env.update(GPU_DIR=str(copied), OUT=str(tmp_path / "model2"), SKIP_BUILD="1", STEPS="2")
+    env.update(GPU_DIR=str(copied), OUT=str(tmp_path / "model2"), SKIP_BUILD="1", STEPS="2", COMPILE="1")
     subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     assert (tmp_path / "model2" / "final_checkpt" / "model.safetensors").is_file()
+    assert not saved_training_state(tmp_path / "model2")["trainer"]["args"]["no_compile"]  # COMPILE=1
     assert not (copied / "raw").exists()  # nothing rendered again
 
     with open(copied / "val" / "video.bin", "r+b") as f:  # a copy cut short
