@@ -15,8 +15,8 @@ def _uniform(low: float, high: float, size, generator) -> torch.Tensor:
     return low + (high - low) * torch.rand(size, generator=generator)
 
 
-def _whole_frame_masks(n: int, T: int, H: int, W: int, generator, clean_prefix_ratio: float = 0.0,
-                       max_first: int = 1) -> torch.Tensor:
+def _whole_frame_masks(n: int, T: int, H: int, W: int, generator, clean_prefix_ratio: float,
+                       max_first: int) -> torch.Tensor:
     """(n, T, H, W) bool: every 2nd or every 3rd frame fully masked (random per example), from a random start.
 
     Every masked frame then follows a clean one, as every target does in the challenge's evaluation, and with
