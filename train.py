@@ -229,6 +229,9 @@ def load_config(path):
         raise ConfigError(f"{path}: bit_loss_weight needs a power-of-two factored vocabulary (the bits of a token "
                           f"id), but image_vocab_size {config.image_vocab_size} gives {config.factored_vocab_size} "
                           "values per factor")
+    if recipe.speed_jitter > 0 and max(recipe.speed_jitter_columns) >= config.action_dim:
+        raise ConfigError(f"{path}: speed_jitter_columns {recipe.speed_jitter_columns} name columns beyond the "
+                          f"model's {config.action_dim} action values (action_names {config.action_names})")
     return config, recipe
 
 

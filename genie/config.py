@@ -210,11 +210,24 @@ class TrainingRecipe:
     # token is the sum of those probabilities' complements, which CE alone does not shape. Needs a power-of-two
     # factored vocabulary; 0: off (the CE alone)
     bit_loss_weight: float = 0.0
+    # every training window's forward-speed inputs (the columns speed_jitter_columns of the concatenated real action
+    # vector) scaled by one factor (1 + speed_jitter) ** U(-1, 1) drawn per window. How far a step forward moves the
+    # view depends on how deep the room is, which the speed does not say; with the speed's magnitude unreliable the
+    # model has to read the gain off the frames it has already seen (a new map's larger rooms move the view less
+    # per step than the training maps'). 0: off
+    speed_jitter: float = 0.0
+    speed_jitter_columns: Optional[List[int]] = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
-            if not 0.0 <= getattr(self, f.name) <= 1.0:
-                raise ConfigError(f"TrainingRecipe: {f.name} must be in [0, 1], got {getattr(self, f.name)}")
+            value = getattr(self, f.name)
+            if isinstance(value, (int, float)) and not 0.0 <= value <= 1.0:
+                raise ConfigError(f"TrainingRecipe: {f.name} must be in [0, 1], got {value}")
+        if self.speed_jitter > 0 and not self.speed_jitter_columns:
+            raise ConfigError("TrainingRecipe: speed_jitter needs speed_jitter_columns (the action columns to scale)")
+        if any(c < 0 for c in self.speed_jitter_columns or []):
+            raise ConfigError(f"TrainingRecipe: speed_jitter_columns must be column indices >= 0, got "
+                              f"{self.speed_jitter_columns}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -65,6 +65,20 @@ def _context_noise(x_BTHWF: torch.Tensor, mask_BTHW: torch.Tensor, recipe: Train
     return torch.where(replace_BTHW.unsqueeze(-1), random_BTHWF, x_BTHWF), level_BT
 
 
+def _jitter_speed(actions_BTD: torch.Tensor, recipe: TrainingRecipe, generator) -> torch.Tensor:
+    """(B, T, D) actions with the columns recipe.speed_jitter_columns of each window scaled by one factor
+    (1 + recipe.speed_jitter) ** U(-1, 1) (the collator's step 7); unknown (NaN) rows stay unknown."""
+    B, _, D = actions_BTD.shape
+    columns = recipe.speed_jitter_columns
+    if max(columns) >= D:
+        raise ValueError(f"maskgit collator: speed_jitter_columns {columns} name columns beyond the model's "
+                         f"{D} action values")
+    scale_B11 = (1.0 + recipe.speed_jitter) ** _uniform(-1.0, 1.0, (B, 1, 1), generator)
+    scaled_BTD = actions_BTD.clone()
+    scaled_BTD[..., columns] = actions_BTD[..., columns] * scale_B11
+    return scaled_BTD
+
+
 @dataclass
 class MaskGITBatch:
     """A collated training batch; token ids are int64 (B, T, H, W)."""
@@ -113,6 +127,11 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
        target, fully masked or, for recipe.two_stream_partial_ratio of them, partly (`_two_stream_target_masks`);
        genie/objectives.py predicts target t from context frames < t.
 
+    7. opt-in (recipe.speed_jitter > 0), drawn last: each window's forward-speed action columns
+       (recipe.speed_jitter_columns) are scaled by one factor (1 + speed_jitter) ** U(-1, 1) (`_jitter_speed`), so the
+       model learns to read from the frames it has seen how far a step moves the view instead of trusting the
+       speed's magnitude; the tokens and masks are those of the same batch without it.
+
     seed: None draws from torch's global RNG (seeded per DataLoader worker and by accelerate's set_seed); an int
     uses a private generator, seeded with seed + worker id inside DataLoader workers, so results are reproducible.
     """
@@ -129,6 +148,13 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
         return generators[key]
 
     def collate_fn(items) -> MaskGITBatch:
+        batch = corrupt_and_mask(items)
+        if recipe.speed_jitter > 0 and batch.actions is not None:
+            # drawn after the masks, so jitter changes the actions and nothing else of the batch
+            batch.actions = _jitter_speed(batch.actions, recipe, generator())
+        return batch
+
+    def corrupt_and_mask(items) -> MaskGITBatch:
         g = generator()
         T, H, W, F, V = config.T, config.H, config.W, config.num_factored_vocabs, config.factored_vocab_size
         labels_BTHW = torch.stack([torch.as_tensor(item["tokens"]) for item in items]).long()

@@ -288,3 +288,34 @@ def test_without_context_noise_batches_carry_no_levels_and_draw_as_before():
     assert a.context_noise is None
     # the noise is drawn after everything else, so a zero level leaves the batch as the plain recipe draws it
     assert torch.equal(a.input_ids, b.input_ids) and (b.context_noise == 0).all()
+
+
+def test_speed_jitter_scales_the_named_columns_of_each_window_by_one_factor():
+    features = make_features(64, seed=4, actions=True)
+    features[3]["actions"]["a"][2] = float("nan")  # an unknown row stays unknown
+    recipe = TrainingRecipe(speed_jitter=0.5, speed_jitter_columns=[0, 2])
+    plain = get_maskgit_collator(action_config(), TrainingRecipe(), seed=5)(features)
+    jittered = get_maskgit_collator(action_config(), recipe, seed=5)(features)
+    # the tokens and masks are the same batch's: only the actions change
+    assert torch.equal(jittered.input_ids, plain.input_ids) and torch.equal(jittered.labels, plain.labels)
+    torch.testing.assert_close(jittered.actions[..., 1], plain.actions[..., 1], equal_nan=True)
+    assert jittered.actions[3, 2].isnan().all()
+    ratio_BTC = jittered.actions[..., [0, 2]] / plain.actions[..., [0, 2]]
+    scale_B = ratio_BTC[:, 0, 0]
+    known_BTC = ~ratio_BTC.isnan()
+    torch.testing.assert_close(ratio_BTC[known_BTC], scale_B[:, None, None].expand_as(ratio_BTC)[known_BTC])
+    assert (scale_B >= 1 / 1.5 - 1e-6).all() and (scale_B <= 1.5 + 1e-6).all()
+    # log-uniform: the factors spread over the range, above and below 1 about equally often
+    assert scale_B.log().abs().max() > 0.8 * math.log(1.5) and 16 < int((scale_B > 1).sum()) < 48
+
+
+def test_speed_jitter_off_and_its_columns_are_checked():
+    features = make_features(2, seed=6, actions=True)
+    off = get_maskgit_collator(action_config(), TrainingRecipe(speed_jitter_columns=[0]), seed=7)(features)
+    assert torch.equal(off.actions, get_maskgit_collator(action_config(), TrainingRecipe(), seed=7)(features).actions)
+    with pytest.raises(ValueError, match=r"speed_jitter_columns \[3\] name columns beyond the model's 3"):
+        get_maskgit_collator(action_config(), TrainingRecipe(speed_jitter=0.5, speed_jitter_columns=[3]),
+                             seed=7)(features)
+    # a model without real actions has nothing to scale
+    assert get_maskgit_collator(tiny_config(), TrainingRecipe(speed_jitter=0.5, speed_jitter_columns=[0]),
+                                seed=7)(features).actions is None

@@ -509,10 +509,21 @@ def test_guess_temperature_reaches_the_training_loss():
 @pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio", "clean_prefix_ratio",
                                    "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio",
                                    "own_context_ratio", "guess_temperature", "context_noise_ratio",
-                                   "context_noise_max", "bit_loss_weight"])
+                                   "context_noise_max", "bit_loss_weight", "speed_jitter"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
-        TrainingRecipe(**{field: 1.5})
+        TrainingRecipe(**{field: 1.5, "speed_jitter_columns": [0]})
+
+
+def test_speed_jitter_needs_valid_columns():
+    with pytest.raises(ConfigError, match="speed_jitter needs speed_jitter_columns"):
+        TrainingRecipe(speed_jitter=0.5)
+    with pytest.raises(ConfigError, match="column indices >= 0"):
+        TrainingRecipe(speed_jitter=0.5, speed_jitter_columns=[0, -1])
+    recipe = TrainingRecipe.from_dict({"speed_jitter": 0.5, "speed_jitter_columns": [0, 5]})
+    assert recipe.speed_jitter_columns == [0, 5] and TrainingRecipe.from_dict(recipe.to_dict()) == recipe
+    with pytest.raises(ConfigError, match="speed_jitter_columns"):
+        TrainingRecipe.from_dict({"speed_jitter": 0.5, "speed_jitter_columns": 5})
 
 
 def test_true_bit_probs_give_a_drawn_tokens_expected_wrong_bits():

@@ -187,6 +187,8 @@ def test_checkpoints_total_limit_and_latest(tiny_data, tmp_path):
     ({"S": 64}, None, "4x4 = 16 tokens .* S=64"),
     ({"image_vocab_size": 1024}, None, "vocab_size 4096 differs .* 1024"),
     ({"image_vocab_size": 900, "bit_loss_weight": 0.5}, None, "bit_loss_weight needs a power-of-two .* 30 values"),
+    ({"speed_jitter": 0.5, "speed_jitter_columns": [0]}, None, r"speed_jitter_columns \[0\] name columns beyond "
+     r"the model's 0 action values"),
 ])
 def test_data_config_mismatch_is_a_clear_error(tiny_data, tmp_path, override, data_key, pattern):
     config = write_config(tmp_path / "bad.json", **override)
