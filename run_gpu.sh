@@ -22,7 +22,7 @@
 # The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO
 # as in run_sample.sh)
 # Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
-# (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to magvit2.build_sample (e.g. --walk_speed).
+# (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to magvit2.build_sample (e.g. --turn_speed).
 # SKIP_BUILD=1 trains on GPU_DIR as it is (its train/ and val/ built on another machine and copied, e.g. to a GPU
 # box without ViZDoom; checked against their MANIFEST.json first: 34 MB as xz-compressed tokens at the default size).
 # PY picks the Python (default venv/bin/python, from ./build.sh --no-data). Without a CUDA GPU it stops, unless

@@ -12,7 +12,7 @@
 
 (`accelerate launch --cpu --num_processes N` starts a single process unless MPI is configured.)
 
-The model owns its loss (model(batch, recipe).loss, genie/objectives.py); this script owns the loop.
+The model owns its loss (model(batch, recipe).loss, genie/model.py); this script owns the loop.
 
 Crash safety: every `--checkpointing_steps` optimizer steps the full training state is written atomically to
 `output_dir/checkpoint-<step>/` (see common/train_state.py); older ones are pruned only after it is complete, and a
@@ -53,12 +53,11 @@ from common.ema import WeightAverage
 from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, TokenDatasetError
-from genie.actions import action_statistics, latent_action_sidecar, prepare_action_streams, stream_dims
+from genie.action_data import action_statistics, latent_action_sidecar, prepare_action_streams, stream_dims
 from genie.checkpoint import load_state_dict_checked
-from genie.compile import compile_for_training
 from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
-from genie.factorization import bits_of_power_of_two
-from genie.masking import MaskGITBatch, get_maskgit_collator
+from genie.masking import get_maskgit_collator
+from genie.model import MaskGITBatch
 from genie.model import STMaskGIT
 from common.files import remove_stale_temp_dirs
 from common import muon
@@ -159,16 +158,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "AMX) trains faster than fp32 (benchmarks/bench_train.py --mixed_precision compare); on "
                         "other CPUs it is emulated and slow (a warning says so when the CPU's flags lack it).")
     add_num_threads_arg(g)
-    g.add_argument("--compile", action="store_true",
-                   help="torch.compile on the CPU too (default: CUDA only, the whole model). On the CPU the "
-                        "transformer blocks are compiled (needs a C++ compiler; a minute or two before the first "
-                        "steps), which trains the CPU default's small model no faster (benchmarks/bench_train.py "
-                        "--compile).")
-    g.add_argument("--no_compile", action="store_true", help="Never torch.compile the model.")
+    g.add_argument("--no_compile", action="store_true",
+                   help="Train eagerly on CUDA too (by default the whole model is torch.compile'd on CUDA: minutes "
+                        "of compiling before the first steps, faster steps after; the CPU always trains eagerly).")
     g.add_argument("--gradient_checkpointing", action="store_true",
                    help="Recompute each transformer block in the backward pass instead of keeping its activations: "
-                        "about a third more compute for much less activation memory (larger batches on a GPU). "
-                        "Applies to the masked-token loss; two-stream batches run without it.")
+                        "about a third more compute for much less activation memory (larger batches on a GPU).")
     g.add_argument("--overfit_first_batch", action="store_true",
                    help="Sanity check: train and validate on the first batch of the training data only.")
 
@@ -224,15 +219,7 @@ def config_path(path) -> str:
 def load_config(path):
     """(GenieConfig, TrainingRecipe) of a --genie_config file (one JSON holds both, as the published one does)."""
     path = config_path(path)
-    config, recipe = GenieConfig.from_pretrained(path), TrainingRecipe.from_pretrained(path)
-    if recipe.bit_loss_weight > 0 and bits_of_power_of_two(config.factored_vocab_size) is None:
-        raise ConfigError(f"{path}: bit_loss_weight needs a power-of-two factored vocabulary (the bits of a token "
-                          f"id), but image_vocab_size {config.image_vocab_size} gives {config.factored_vocab_size} "
-                          "values per factor")
-    if recipe.speed_jitter > 0 and max(recipe.speed_jitter_columns) >= config.action_dim:
-        raise ConfigError(f"{path}: speed_jitter_columns {recipe.speed_jitter_columns} name columns beyond the "
-                          f"model's {config.action_dim} action values (action_names {config.action_names})")
-    return config, recipe
+    return GenieConfig.from_pretrained(path), TrainingRecipe.from_pretrained(path)
 
 
 def build_datasets(args, config: GenieConfig, batch_items: int):
@@ -367,10 +354,10 @@ class Trainer:
         self.ema = self.weight_average(resumed) if args.ema_decay > 0 else None
         self.ddp_model, self.ddp_optimizer = accelerator.prepare(self.model, self.optimizer)
         if self.use_compile():
-            self.ddp_model = compile_for_training(self.ddp_model, self.model, self.device)
+            self.ddp_model = torch.compile(self.ddp_model)
 
     def use_compile(self) -> bool:
-        return not self.args.no_compile and (self.args.compile or self.device.type == "cuda")
+        return not self.args.no_compile and self.device.type == "cuda"
 
     # ---- checkpoints
     def trainer_state(self) -> dict:

@@ -15,6 +15,7 @@ token dir's actions/NAME.bin, e.g. the latent actions written by lam.label), or 
 import argparse
 import json
 import logging
+import sys
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence, Union
 
@@ -22,12 +23,12 @@ import numpy as np
 from matplotlib.figure import Figure
 from PIL import Image, ImageDraw, ImageFont
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, setup_logging
-from common.config import ConfigError
-from common.errors import WriteError
+from common.cli import (add_device_arg, add_num_threads_arg, apply_cpu_settings, non_negative_int, positive_float,
+                        positive_int, resolve_device, run_main, setup_logging)
+from common.errors import InputError
 from common.files import atomic_file
-from data import RawTokenDataset, TokenDatasetError
-from magvit2 import CheckpointError, VQModel
+from data import RawTokenDataset
+from magvit2 import VQModel
 
 logger = logging.getLogger(__name__)
 
@@ -45,13 +46,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--token_dir", default="data/genie_generated",
                         help="directory with video.bin + metadata.json (a dataset or generated tokens)")
     parser.add_argument("--output_dir", default=None, help="where the GIF and comic go (default: --token_dir)")
-    parser.add_argument("--offset", type=int, default=0,
+    parser.add_argument("--offset", type=non_negative_int, default=0,
                         help="first frame (plain dataset) or first example (generated dir) to show")
-    parser.add_argument("--stride", type=int, default=1, help="step between shown frames / examples")
-    parser.add_argument("--fps", type=float, default=2, help="GIF frames per second")
-    parser.add_argument("--max_images", type=int, default=None,
+    parser.add_argument("--stride", type=positive_int, default=1, help="step between shown frames / examples")
+    parser.add_argument("--fps", type=positive_float, default=2, help="GIF frames per second")
+    parser.add_argument("--max_images", type=positive_int, default=None,
                         help="plain datasets: at most this many frames (default: all from --offset on)")
-    parser.add_argument("--max_examples", type=int, default=4, help="generated dirs: at most this many examples")
+    parser.add_argument("--max_examples", type=positive_int, default=4,
+                        help="generated dirs: at most this many examples")
     parser.add_argument("--disable_comic", action="store_true", help="do not write the comic PNG (generated dirs)")
     parser.add_argument("--tokenizer_ckpt", default=None,
                         help=f"tokenizer checkpoint (directory or .ckpt); default: the token dir's metadata "
@@ -65,18 +67,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "dir (e.g. latent_action)")
     add_device_arg(parser, help="torch device for decoding: auto (cuda when available, else cpu), cpu, cuda or cuda:N")
     add_num_threads_arg(parser)
-    parser.add_argument("--batch_size", type=int, default=16, help="frames decoded per forward pass")
+    parser.add_argument("--batch_size", type=positive_int, default=16, help="frames decoded per forward pass")
     parser.add_argument("--allow_unsafe_pickle", action="store_true",
                         help="let torch.load run code from a .ckpt that weights_only loading refuses "
                              "(trusted files only)")
-    args = parser.parse_args(argv)
-    for name in ("offset", "stride", "max_images", "max_examples", "batch_size"):
-        value = getattr(args, name)
-        if value is not None and value < (0 if name == "offset" else 1):
-            parser.error(f"--{name} must be >= {0 if name == 'offset' else 1}, got {value}")
-    if not args.fps > 0:
-        parser.error("--fps must be > 0")
-    return args
+    return parser.parse_args(argv)
 
 
 def resolve_tokenizer_ckpt(explicit: Optional[str], metadata: dict) -> Path:
@@ -108,21 +103,21 @@ def load_labels(path, num_images: int) -> List[str]:
         try:
             labels = json.loads(path.read_text())
         except ValueError as e:
-            raise ValueError(f"{path}: not valid JSON ({e})") from None
+            raise InputError(f"{path}: not valid JSON ({e})") from None
         if not isinstance(labels, list):
-            raise ValueError(f"{path}: expected a JSON list of labels, got {type(labels).__name__}")
+            raise InputError(f"{path}: expected a JSON list of labels, got {type(labels).__name__}")
         labels = [str(label) for label in labels]
     else:
         labels = path.read_text().splitlines()
     if len(labels) != num_images:
-        raise ValueError(f"{path}: {len(labels)} labels but the token dir has {num_images} frames")
+        raise InputError(f"{path}: {len(labels)} labels but the token dir has {num_images} frames")
     return labels
 
 
 def action_labels(dataset: RawTokenDataset, name: str) -> Callable[[int], str]:
     """Frame index -> 'name v1 v2 ...' from the token dir's actions/<name>.bin (read lazily)."""
     if name not in dataset.actions:
-        raise ValueError(f"{dataset.data_dir / 'actions' / (name + '.bin')} not found; action streams there: "
+        raise InputError(f"{dataset.data_dir / 'actions' / (name + '.bin')} not found; action streams there: "
                          f"{dataset.action_names or 'none'}")
     values = dataset.actions[name]
 
@@ -223,14 +218,14 @@ def visualize_generated(model: VQModel, tokens: np.ndarray, metadata: dict, out_
     P, W = metadata["num_prompt_frames"], metadata["window_size"]
     example_len = 2 * W - P
     if not (isinstance(P, int) and isinstance(W, int) and 1 <= P < W):
-        raise ValueError(f"metadata num_prompt_frames={P!r}, window_size={W!r}: need integers with "
+        raise InputError(f"metadata num_prompt_frames={P!r}, window_size={W!r}: need integers with "
                          f"1 <= num_prompt_frames < window_size")
     if len(tokens) % example_len:
-        raise ValueError(f"{len(tokens)} frames is not a multiple of 2 * window_size - num_prompt_frames = "
+        raise InputError(f"{len(tokens)} frames is not a multiple of 2 * window_size - num_prompt_frames = "
                          f"{example_len} (prompt | predictions | ground truth per example)")
     examples = list(range(offset, len(tokens) // example_len, stride))[:max_examples]
     if not examples:
-        raise ValueError(f"--offset {offset} is past the last example ({len(tokens) // example_len} examples)")
+        raise InputError(f"--offset {offset} is past the last example ({len(tokens) // example_len} examples)")
     frame_ids = np.concatenate([np.arange(e * example_len, (e + 1) * example_len) for e in examples])
     pixels = model.tokens_to_images(np.asarray(tokens[frame_ids]), batch_size=batch_size)
     pixels = pixels.reshape(len(examples), example_len, *pixels.shape[1:])
@@ -265,7 +260,7 @@ def visualize_frames(model: VQModel, tokens: np.ndarray, out_dir: Path, offset: 
     """Plain GIF of frames offset, offset + stride, ... of tokens (N, s, s). Returns the files written."""
     frame_ids = np.arange(offset, len(tokens), stride)[:max_images]
     if not len(frame_ids):
-        raise ValueError(f"--offset {offset} is past the last frame ({len(tokens)} frames)")
+        raise InputError(f"--offset {offset} is past the last frame ({len(tokens)} frames)")
     if len(frame_ids) > 1000:
         logger.warning("decoding %d frames into one GIF; --max_images limits that", len(frame_ids))
     pixels = model.tokens_to_images(tokens[offset::stride][:len(frame_ids)], batch_size=batch_size)
@@ -279,31 +274,28 @@ def main(argv=None) -> None:
     setup_logging()
     args = parse_args(argv)
     apply_cpu_settings(args.num_threads)
-    try:
-        dataset = RawTokenDataset(args.token_dir, window_size=1, filter_interrupts=False)
-        tokens, metadata = dataset.data, dataset.metadata
-        labels = load_labels(args.labels, len(tokens)) if args.labels else None
-        if args.label_action:
-            labels = action_labels(dataset, args.label_action)
-        ckpt = resolve_tokenizer_ckpt(args.tokenizer_ckpt, metadata)
-        model = VQModel.from_checkpoint(ckpt, allow_unsafe_pickle=args.allow_unsafe_pickle,
-                                        map_location=resolve_device(args.device)).eval()
-        out_dir = Path(args.output_dir if args.output_dir is not None else args.token_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if all(key in metadata for key in ("num_prompt_frames", "window_size")):
-            written = visualize_generated(model, tokens, metadata, out_dir, args.offset, args.stride,
-                                          args.max_examples, args.fps, not args.disable_comic, labels, args.batch_size)
-        else:
-            if not args.disable_comic:
-                logger.info("%s is a plain dataset (no num_prompt_frames / window_size): GIF only, no comic",
-                            args.token_dir)
-            written = visualize_frames(model, tokens, out_dir, args.offset, args.stride, args.max_images, args.fps,
-                                       labels, args.batch_size)
-    except (TokenDatasetError, CheckpointError, ConfigError, FileNotFoundError, ValueError, WriteError) as e:
-        raise SystemExit(f"error: {e}") from None
+    dataset = RawTokenDataset(args.token_dir, window_size=1, filter_interrupts=False)
+    tokens, metadata = dataset.data, dataset.metadata
+    labels = load_labels(args.labels, len(tokens)) if args.labels else None
+    if args.label_action:
+        labels = action_labels(dataset, args.label_action)
+    ckpt = resolve_tokenizer_ckpt(args.tokenizer_ckpt, metadata)
+    model = VQModel.from_checkpoint(ckpt, allow_unsafe_pickle=args.allow_unsafe_pickle,
+                                    map_location=resolve_device(args.device)).eval()
+    out_dir = Path(args.output_dir if args.output_dir is not None else args.token_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if all(key in metadata for key in ("num_prompt_frames", "window_size")):
+        written = visualize_generated(model, tokens, metadata, out_dir, args.offset, args.stride,
+                                      args.max_examples, args.fps, not args.disable_comic, labels, args.batch_size)
+    else:
+        if not args.disable_comic:
+            logger.info("%s is a plain dataset (no num_prompt_frames / window_size): GIF only, no comic",
+                        args.token_dir)
+        written = visualize_frames(model, tokens, out_dir, args.offset, args.stride, args.max_images, args.fps,
+                                   labels, args.batch_size)
     for path in written:
         print(f"Saved to {path}")
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("visualize.py", main))

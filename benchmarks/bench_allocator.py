@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from common.allocator import OPT_OUT_ENV
+from common.cli import positive_int, run_main
 from magvit2.build_sample import SHIPPED_TOKENIZER, resolve_tokenizer
 
 BENCH_TRAIN = Path(__file__).with_name("bench_train.py")
@@ -39,11 +40,9 @@ def parse_args(argv=None):
     p.add_argument("--frames", type=Path, default=None,
                    help="tokenize: an .npz of frames (e.g. data/sample/raw/val.npz, which ./build.sh renders)")
     p.add_argument("--tokenizer_ckpt", default=SHIPPED_TOKENIZER, help="tokenize: the tokenizer's directory")
-    p.add_argument("--rounds", type=int, default=2,
+    p.add_argument("--rounds", type=positive_int, default=2,
                    help="Pairs of runs (each pair one of each allocator, the order alternating)")
     args, passthrough = p.parse_known_args(argv)
-    if args.rounds < 1:
-        p.error(f"--rounds must be >= 1, got {args.rounds}")
     if args.workload == "tokenize" and (args.frames is None or not args.frames.is_file()):
         p.error(f"--workload tokenize needs --frames, an existing .npz file (got {args.frames})")
     return args, passthrough
@@ -67,14 +66,17 @@ def run(args, allocator: str, passthrough, out_dir: Path) -> float:
     faults0, t0 = child_faults(), time.perf_counter()
     out = subprocess.run(command, env=env, capture_output=True, text=True)
     if out.returncode != 0:
-        raise SystemExit(f"{' '.join(command[1:3])} ({allocator} allocator) failed:\n{out.stderr[-2000:]}")
+        said = (out.stderr.strip().splitlines() or ["no message"])[-1]  # the measured script's own error line
+        raise SystemExit(f"bench_allocator.py: error: {' '.join(command[1:3])} ({allocator} allocator) failed with "
+                         f"exit status {out.returncode}: {said}")
     if args.workload == "tokenize":  # the whole process, timed from here
         seconds, faults = time.perf_counter() - t0, child_faults() - faults0
         print(f"{allocator:>8}: {seconds:.2f} s, {faults:,.0f} minor page faults", flush=True)
         return seconds
     match = TRAIN_LINE.search(out.stdout)  # the timed steps, as bench_train.py measured them
     if match is None:
-        raise SystemExit(f"bench_train.py printed no step time with page faults:\n{out.stdout}")
+        raise SystemExit(f"bench_allocator.py: error: bench_train.py printed no step time with page faults "
+                         f"(its output: {' '.join(out.stdout.split())[-500:]})")
     seconds, faults = float(match.group(1)), float(match.group(2).replace(",", ""))
     print(f"{allocator:>8}: {seconds:.3f} s/step, {faults:,.0f} minor page faults per step", flush=True)
     return seconds
@@ -94,4 +96,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("bench_allocator.py", main))

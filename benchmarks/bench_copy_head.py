@@ -11,19 +11,20 @@ Three ways to turn readout logits (N, 512, 2) into log-probabilities, timed side
 Each is timed for inference (no autograd) and for training (forward + backward). Prints milliseconds, the ratios
 sparse / plain and dense / sparse, and the largest difference between sparse and dense. Then what greedy decoding
 adds at inference: CopyHead.mode (the mixture's most probable whole token, the default) next to the factor-wise
-argmax of the sparse mixture (`--greedy_tokens factored`) and the mode with copies from the single most weighted
+argmax of the sparse mixture (the plain argmax it replaced) and the mode with copies from the single most weighted
 neighbour (`--greedy_tokens best_neighbour`); and what sampling at temperature 1 adds:
-genie.sampling.sample_mixture_tokens (whole tokens, the default) next to sample_factored_tokens over the mixture's
-marginals (`--sampled_tokens factored`), and next to the same draws with the greedy mode computed too (which
-sampling never reads, so inference at a temperature skips it: `STMaskGIT.predict(greedy=False)`).
+genie.sampling.sample_mixture_tokens (whole tokens) next to sample_factored_tokens over the mixture's marginals
+(what it replaced), and next to the same draws with the greedy mode computed too (which sampling never reads, so
+inference at a temperature skips it: `STMaskGIT.predict(greedy=False)`).
 """
 import argparse
+import sys
 import time
 
 import torch
 from einops import rearrange
 
-from common.cli import add_num_threads_arg, apply_cpu_settings
+from common.cli import add_num_threads_arg, apply_cpu_settings, non_negative_int, positive_int, run_main
 from genie.copy_head import CopyHead
 from genie.reference import dense_copy_mixture
 from genie.sampling import sample_factored_tokens, sample_mixture_tokens
@@ -32,11 +33,12 @@ from genie.sampling import sample_factored_tokens, sample_mixture_tokens
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description="Time the copy head's mixture against the plain readout and the dense "
                                             "mixture.", formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--num_tokens", type=int, default=2048, help="Predicted tokens per call (N).")
-    p.add_argument("--radius", type=int, default=2, help="Copy radius r (K = (2r+1)^2 neighbours).")
-    p.add_argument("--d_model", type=int, default=128, help="Hidden size feeding the pointer's scores.")
-    p.add_argument("--repeats", type=int, default=5, help="Timed calls per variant (after one warm-up call).")
-    p.add_argument("--seed", type=int, default=0, help="Seed of the random inputs.")
+    p.add_argument("--num_tokens", type=positive_int, default=2048, help="Predicted tokens per call (N).")
+    p.add_argument("--radius", type=non_negative_int, default=2, help="Copy radius r (K = (2r+1)^2 neighbours).")
+    p.add_argument("--d_model", type=positive_int, default=128, help="Hidden size feeding the pointer's scores.")
+    p.add_argument("--repeats", type=positive_int, default=5,
+                   help="Timed calls per variant (after one warm-up call).")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="Seed of the random inputs.")
     add_num_threads_arg(p)
     return p.parse_args(argv)
 
@@ -111,4 +113,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(run_main("bench_copy_head.py", main))

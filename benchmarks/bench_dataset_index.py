@@ -11,12 +11,14 @@ against ours on that prefix.
 import argparse
 import json
 import resource
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from common.cli import existing_dir, non_negative_int, positive_int, run_main
 from data import RawTokenDataset
 from data.token_dataset import filter_overlapping_starts, valid_start_mask
 
@@ -72,20 +74,28 @@ def best_time(fn, repeats: int) -> float:
     return min(times)
 
 
-def main():
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--num_frames", type=int, default=10_800_000, help="frames in the dataset (train_v1.1: 10.8 M)")
-    parser.add_argument("--reference_frames", type=int, default=500_000,
+    parser.add_argument("--num_frames", type=positive_int, default=10_800_000,
+                        help="frames in the dataset (train_v1.1: 10.8 M)")
+    parser.add_argument("--reference_frames", type=positive_int, default=500_000,
                         help="frames the slow reference runs on; its time is extrapolated linearly")
-    parser.add_argument("--window_size", type=int, default=16, help="frames per window (challenge: 16)")
-    parser.add_argument("--stride", type=int, default=15, help="frames between window frames (challenge: 15)")
-    parser.add_argument("--s", type=int, default=16, help="token grid side (the sparse video.bin is N*s*s*4 bytes)")
-    parser.add_argument("--min_segment_len", type=int, default=1000, help="shortest segment (clip), in frames")
-    parser.add_argument("--max_segment_len", type=int, default=6000, help="longest segment (clip), in frames")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs of ours; the best is reported")
-    parser.add_argument("--seed", type=int, default=0, help="seed for the segment lengths")
-    parser.add_argument("--tmp_dir", default=None, help="where to create the temp dataset (default: system temp)")
-    args = parser.parse_args()
+    parser.add_argument("--window_size", type=positive_int, default=16, help="frames per window (challenge: 16)")
+    parser.add_argument("--stride", type=positive_int, default=15,
+                        help="frames between window frames (challenge: 15)")
+    parser.add_argument("--s", type=positive_int, default=16,
+                        help="token grid side (the sparse video.bin is N*s*s*4 bytes)")
+    parser.add_argument("--min_segment_len", type=positive_int, default=1000,
+                        help="shortest segment (clip), in frames")
+    parser.add_argument("--max_segment_len", type=positive_int, default=6000,
+                        help="longest segment (clip), in frames")
+    parser.add_argument("--repeats", type=positive_int, default=3, help="timed runs of ours; the best is reported")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed for the segment lengths")
+    parser.add_argument("--tmp_dir", type=existing_dir, default=None,
+                        help="where to create the temp dataset (default: system temp)")
+    args = parser.parse_args(argv)
+    if args.min_segment_len > args.max_segment_len:
+        parser.error(f"--min_segment_len {args.min_segment_len} is above --max_segment_len {args.max_segment_len}")
 
     with tempfile.TemporaryDirectory(dir=args.tmp_dir) as tmp:
         path = Path(tmp)
@@ -123,4 +133,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("bench_dataset_index.py", main))

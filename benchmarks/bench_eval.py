@@ -14,6 +14,7 @@ metrics agree (CE to tolerance; sampled tokens identical at temperature 0). Then
 import argparse
 import contextlib
 import dataclasses
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -21,7 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 import genie
-from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device
+from common.cli import (add_device_arg, add_num_threads_arg, apply_cpu_settings, non_negative_int, positive_int,
+                        resolve_device, run_main)
 from data import RawTokenDataset, write_token_dataset
 from genie import GenieConfig, STMaskGIT
 from genie.metrics import factored_cross_entropy
@@ -31,21 +33,21 @@ from genie.reference import generate_uncached, teacher_forced_uncached
 CONFIG_PATH = Path(genie.__file__).parent / "configs" / "magvit_n8_h8_d256.json"
 
 
-def parse_args():
+def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint_dir", default=None,
                    help="Benchmark these weights (default: a randomly initialized model of --num_layers).")
-    p.add_argument("--num_layers", type=int, default=8, help="Layers of the random model (8: benchmark shape, "
+    p.add_argument("--num_layers", type=positive_int, default=8, help="Layers of the random model (8: benchmark shape, "
                                                              "32: GENIE_35M).")
-    p.add_argument("--num_windows", type=int, default=2, help="Validation windows to evaluate.")
-    p.add_argument("--batch_size", type=int, default=1, help="Windows per forward pass.")
-    p.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT steps per frame.")
+    p.add_argument("--num_windows", type=positive_int, default=2, help="Validation windows to evaluate.")
+    p.add_argument("--batch_size", type=positive_int, default=1, help="Windows per forward pass.")
+    p.add_argument("--maskgit_steps", type=positive_int, default=2, help="MaskGIT steps per frame.")
     add_device_arg(p)
     p.add_argument("--dtype", choices=("fp32", "bf16"), default="fp32", help="bf16 runs under autocast (CUDA).")
-    p.add_argument("--seed", type=int, default=0, help="Seed of the weights, data and sampler.")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="Seed of the weights, data and sampler.")
     p.add_argument("--skip_generation", action="store_true", help="Only benchmark teacher-forced evaluation.")
     add_num_threads_arg(p)
-    return p.parse_args()
+    return p.parse_args(argv)
 
 
 def build_model(args) -> STMaskGIT:
@@ -129,8 +131,8 @@ def sync(device):
         torch.cuda.synchronize(device)
 
 
-def main():
-    args = parse_args()
+def main(argv=None):
+    args = parse_args(argv)
     apply_cpu_settings(args.num_threads)
     device = resolve_device(args.device)
     torch.manual_seed(args.seed)
@@ -170,8 +172,8 @@ def main():
               f"{no_cache.wall / cache.wall:.1f}x (process CPU time: {no_cache.cpu / new_frames:.4f} vs "
               f"{cache.cpu / new_frames:.4f}, {no_cache.cpu / cache.cpu:.1f}x)")
     if not agree:
-        raise SystemExit("the two evaluators disagree")
+        raise SystemExit("bench_eval.py: error: the two evaluators disagree")
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("bench_eval.py", main))

@@ -9,11 +9,12 @@ torch.cuda.max_memory_allocated. The naive form needs several (N, 2^18) fp32 ten
 import argparse
 import multiprocessing as mp
 import resource
+import sys
 import time
 
 import torch
 
-from common.cli import add_device_arg, resolve_device
+from common.cli import add_device_arg, positive_int, resolve_device, run_main
 from magvit2.lfq import entropy_terms, naive_entropy_terms
 
 METHODS = {"factorized": entropy_terms, "naive": naive_entropy_terms}
@@ -57,14 +58,16 @@ def measure_in_fresh_process(*args) -> dict:
     return result
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--batch_size", type=int, default=8, help="images per batch")
-    parser.add_argument("--latent_side", type=int, default=16, help="latent grid side (16 for 256x256 images)")
-    parser.add_argument("--num_channels", type=int, default=18, help="LFQ bits; the codebook has 2^num_channels codes")
+    parser.add_argument("--batch_size", type=positive_int, default=8, help="images per batch")
+    parser.add_argument("--latent_side", type=positive_int, default=16,
+                        help="latent grid side (16 for 256x256 images)")
+    parser.add_argument("--num_channels", type=positive_int, default=18,
+                        help="LFQ bits; the codebook has 2^num_channels codes")
     add_device_arg(parser)
     parser.add_argument("--skip_naive", action="store_true", help="do not run the naive form (it needs ~10 GiB)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     device = str(resolve_device(args.device))
     n = args.batch_size * args.latent_side ** 2
     print(f"LFQ entropy loss, forward + backward: N = {n} latents, codebook 2^{args.num_channels}, "
@@ -83,4 +86,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("bench_lfq_entropy.py", main))

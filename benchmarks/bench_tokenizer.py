@@ -6,11 +6,13 @@ Two shapes: 64x64 with a small 3-level tokenizer (16x16 tokens) and 256x256 with
     python benchmarks/bench_tokenizer.py [--iters 3]
 """
 import argparse
+import sys
 import time
 
 import numpy as np
 import torch
 
+from common.cli import positive_int, run_main
 from magvit2 import VQConfig, VQModel
 
 SHAPES = {
@@ -31,12 +33,16 @@ def timed(fn, iters: int, device: str) -> float:
     return (time.perf_counter() - start) / iters
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--iters", type=int, default=3, help="timed repetitions per measurement (after 1 warm-up)")
-    parser.add_argument("--devices", nargs="+", default=["cpu"] + (["cuda"] if torch.cuda.is_available() else []),
+    parser.add_argument("--iters", type=positive_int, default=3,
+                        help="timed repetitions per measurement (after 1 warm-up)")
+    parser.add_argument("--devices", nargs="+", choices=("cpu", "cuda"),
+                        default=["cpu"] + (["cuda"] if torch.cuda.is_available() else []),
                         help="devices to measure (default: cpu, and cuda when present)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if "cuda" in args.devices and not torch.cuda.is_available():
+        parser.error("--devices cuda: CUDA is not available on this machine")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads")
     print(f"{'device':<6} {'shape':<24} {'batch':>5} {'encode tok/s':>13} {'decode tok/s':>13} "
           f"{'enc frames/s':>13} {'dec frames/s':>13}")
@@ -57,4 +63,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("bench_tokenizer.py", main))

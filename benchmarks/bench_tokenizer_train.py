@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from common.cli import positive_int, run_main
 from magvit2.lpips import LPIPSWeightsNotFound, resolve_lpips_weights
 
 SETTINGS = {
@@ -35,18 +36,18 @@ def synthetic_frames(n: int, size: int) -> np.ndarray:
     return ((frames + 1) * 127.5).astype(np.uint8)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--resolution", type=int, default=64, help="Frame side.")
-    p.add_argument("--batch_size", type=int, default=16, help="Frames per step.")
-    p.add_argument("--base_channels", type=int, default=64, help="Tokenizer width of level 0.")
-    p.add_argument("--ch_mult", type=int, nargs="+", default=[1, 2, 2], help="Width multipliers per level.")
-    p.add_argument("--num_res_blocks", type=int, default=2, help="Residual blocks per level.")
-    p.add_argument("--steps", type=int, default=6,
+    p.add_argument("--resolution", type=positive_int, default=64, help="Frame side.")
+    p.add_argument("--batch_size", type=positive_int, default=16, help="Frames per step.")
+    p.add_argument("--base_channels", type=positive_int, default=64, help="Tokenizer width of level 0.")
+    p.add_argument("--ch_mult", type=positive_int, nargs="+", default=[1, 2, 2], help="Width multipliers per level.")
+    p.add_argument("--num_res_blocks", type=positive_int, default=2, help="Residual blocks per level.")
+    p.add_argument("--steps", type=positive_int, default=6,
                    help="Timed training steps per setting (the difference of a 1-step and a (1 + steps)-step run).")
     p.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS),
                    help="Speed settings to compare.")
-    args = p.parse_args()
+    args = p.parse_args(argv)
     try:
         resolve_lpips_weights()
         lpips_flags, lpips_note = [], "with LPIPS every step"
@@ -78,10 +79,11 @@ def train(flags: list, output_dir: Path, steps: int) -> dict:
                              "--max_train_steps", str(steps)], capture_output=True, text=True)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if result.returncode != 0:
-        sys.exit(f"training failed:\n{result.stderr[-3000:]}")
+        said = (result.stderr.strip().splitlines() or ["no message"])[-1]  # magvit2.train's own error line
+        sys.exit(f"bench_tokenizer_train.py: error: magvit2.train failed with exit status {result.returncode}: {said}")
     results = json.loads((output_dir / "eval_results.json").read_text())
     return {"seconds": steps / results["train_steps_per_second"],
             "cpu_seconds": (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)}
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("bench_tokenizer_train.py", main))

@@ -17,6 +17,7 @@ step = batch * T * S. The published implementation trains this shape at ~1,840 t
 (fp32, batch 2); the ratio to that figure is printed (it is only meaningful for that shape on that machine).
 """
 import argparse
+import sys
 import time
 from typing import Optional
 
@@ -28,12 +29,11 @@ except ImportError:  # not a Unix
 import torch
 
 from common.cli import (NO_NATIVE_BF16, add_device_arg, add_num_threads_arg, apply_cpu_settings, cpu_has_native_bf16,
-                        resolve_device)
+                        non_negative_int, positive_int, resolve_device, run_main)
 from common.muon import build_optimizer
-from genie.actions import LATENT_ACTION_NAME
-from genie.compile import compile_for_training
+from genie.action_data import LATENT_ACTION_NAME
 from genie.masking import get_maskgit_collator
-from genie.attention import set_cpu_bf16_math
+from genie.transformer import set_cpu_bf16_math
 from genie.config import GenieConfig, TrainingRecipe
 from genie.model import STMaskGIT
 from genie.reference import full_logits_loss
@@ -51,15 +51,15 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="With --genie_config: train with the config's training recipe, as train.py does (e.g. "
                         "its self_reveal_ratio adds a pass without gradients for that share of the examples), or "
                         "with the published one (masking and loss only). Without --genie_config: the published one.")
-    p.add_argument("--num_layers", type=int, default=8, help="Transformer blocks.")
-    p.add_argument("--d_model", type=int, default=256, help="Model width.")
-    p.add_argument("--num_heads", type=int, default=8, help="Attention heads.")
-    p.add_argument("--T", type=int, default=16, help="Frames per window.")
-    p.add_argument("--s", type=int, default=16, help="Token grid side (S = s * s).")
-    p.add_argument("--image_vocab_size", type=int, default=262144, help="Image token vocabulary.")
-    p.add_argument("--batch_size", type=int, default=2, help="Windows per step.")
-    p.add_argument("--warmup_steps", type=int, default=2, help="Untimed steps first.")
-    p.add_argument("--steps", type=int, default=5, help="Timed steps.")
+    p.add_argument("--num_layers", type=positive_int, default=8, help="Transformer blocks.")
+    p.add_argument("--d_model", type=positive_int, default=256, help="Model width.")
+    p.add_argument("--num_heads", type=positive_int, default=8, help="Attention heads.")
+    p.add_argument("--T", type=positive_int, default=16, help="Frames per window.")
+    p.add_argument("--s", type=positive_int, default=16, help="Token grid side (S = s * s).")
+    p.add_argument("--image_vocab_size", type=positive_int, default=262144, help="Image token vocabulary.")
+    p.add_argument("--batch_size", type=positive_int, default=2, help="Windows per step.")
+    p.add_argument("--warmup_steps", type=non_negative_int, default=2, help="Untimed steps first.")
+    p.add_argument("--steps", type=positive_int, default=5, help="Timed steps.")
     add_device_arg(p)
     p.add_argument("--mixed_precision", default="no", choices=("no", "bf16", "compare"),
                    help="bf16 autocast (CUDA, or CPUs with native bf16 such as avx512_bf16); compare: fp32, then "
@@ -71,10 +71,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--optimizer", default="adamw", choices=("adamw", "muon", "compare"),
                    help="The optimizer train.py builds with --optimizer adamw / muon; compare: both, with the ratio.")
     p.add_argument("--compile", action="store_true",
-                   help="torch.compile the model as train.py --compile does (on the CPU: its transformer blocks).")
+                   help="torch.compile the whole model, as train.py does on CUDA (CUDA only).")
     add_num_threads_arg(p)
     p.add_argument("--profile", action="store_true", help="Print the top operators of one profiled step.")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if [args.readout, args.mixed_precision, args.optimizer].count("compare") > 1:
+        p.error("compare one thing at a time (--readout, --mixed_precision or --optimizer)")
+    if args.compile and resolve_device(args.device).type != "cuda":
+        p.error("--compile is for CUDA (--device cuda): on the CPU it measured no gain and was removed")
+    return args
 
 
 def make_step(model, optimizer, collate, windows, device, mixed_precision, full_readout: bool = False,
@@ -134,7 +139,7 @@ def measure(args, device, mixed_precision: str, math_path: bool, full_readout: b
     """Seconds per optimizer step (wall) of a freshly built model; prints one line."""
     config, recipe, model, optimizer, windows = build(args, device, optimizer_name)
     set_cpu_bf16_math(model, math_path)
-    compiled = compile_for_training(model, model, device) if args.compile else model  # as train.py compiles
+    compiled = torch.compile(model) if args.compile else model  # as train.py compiles on CUDA
     step = make_step(compiled, optimizer, get_maskgit_collator(config, recipe, seed=0), windows, device,
                      mixed_precision, full_readout, recipe)
     for _ in range(args.warmup_steps):
@@ -169,8 +174,6 @@ def minor_page_faults() -> Optional[int]:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    if [args.readout, args.mixed_precision, args.optimizer].count("compare") > 1:
-        raise SystemExit("bench_train.py: compare one thing at a time (--readout, --mixed_precision or --optimizer)")
     device = resolve_device(args.device)
     apply_cpu_settings(args.num_threads)
     config, recipe, model = build(args, device)[:3]
@@ -203,4 +206,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("bench_train.py", main))

@@ -2,11 +2,14 @@
 import argparse
 import logging
 import math
+import sys
 from pathlib import Path
+from typing import Callable, Optional
 
 import torch
 
 from common.allocator import retain_freed_memory
+from common.errors import InputError, TrainingError, WriteError
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 LOG_DATE_FORMAT = "%H:%M:%S"
@@ -74,62 +77,6 @@ def add_device_arg(parser, help: str = "torch device: auto (cuda when available,
     parser.add_argument("--device", type=_device_name, default="auto", help=help, **kwargs)
 
 
-# how a model with a copy head (copy_radius) turns its copy-or-new mixture into tokens, per decoding mode:
-# (flag, when it applies, its choices, what each does; the first is the default)
-TOKEN_CHOICES = (
-    ("--greedy_tokens", "greedy decoding (--temperature 0) picks", {
-        "joint": "the most probable whole token of the mixture",
-        "factored": "each factor's argmax of the per-factor marginals (the earlier behaviour; it can pair two "
-                    "neighbours' factors into a token neither holds)",
-        "best_neighbour": "as joint, but a copy takes the single most weighted neighbour's token, not the token "
-                          "with the most weight summed over the neighbours holding it (which grows flat patches "
-                          "in rollouts)"}),
-    ("--sampled_tokens", "sampling (--temperature > 0) draws", {
-        "joint": "a whole token from the mixture (an option, then for a new token the readout's factors)",
-        "factored": "each factor on its own from the per-factor marginals (the earlier behaviour; it can pair two "
-                    "neighbours' factors into a token neither holds)"}),
-)
-
-
-def add_token_choice_args(parser) -> None:
-    """--greedy_tokens and --sampled_tokens of the scripts that decode with a dynamics model
-    (STMaskGIT.set_greedy_tokens, STMaskGIT.set_joint_sampling)."""
-    for flag, when, choices in TOKEN_CHOICES:
-        described = "; ".join(f"{name}: {what}" for name, what in choices.items())
-        parser.add_argument(flag, choices=tuple(choices), default=next(iter(choices)),
-                            help=f"How {when} each token of a model with a copy head (copy_radius): {described}. "
-                                 f"Models without a copy head decode the same either way.")
-
-
-def _share(text: str) -> float:
-    """argparse type of a share in (0, 1]."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}") from None
-    if not 0.0 < value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text}")
-    return value
-
-
-def add_stall_ratio_arg(parser) -> None:
-    """--stall_ratio of the scripts that generate futures (genie.inference.generate's stall rule)."""
-    parser.add_argument("--stall_ratio", type=_share, default=None,
-                        help="Decoding rule for free-running futures, off by default: once a generated frame changes "
-                             "at most this fraction of what the prompt's frames change per step (the share of "
-                             "tokens that differ from the frame before; e.g. 0.66), the window's future is taken to "
-                             "have stopped moving and every later frame repeats that one. A small model's greedy "
-                             "futures slow down and then decay in place; this holds them where they stopped. Needs "
-                             "at least 2 prompt frames. Teacher-forced predictions are unaffected.")
-
-
-def check_stall_ratio(parser, stall_ratio, num_prompt_frames: int) -> None:
-    """Usage error when --stall_ratio is set but the prompt has fewer than the 2 frames its motion is measured on."""
-    if stall_ratio is not None and num_prompt_frames < 2:
-        parser.error(f"--stall_ratio compares generated frames with the prompt's motion: it needs --num_prompt_frames "
-                     f">= 2, got {num_prompt_frames}")
-
-
 def finite_float(text: str) -> float:
     """argparse type: a finite number (not nan or inf, which would otherwise surface as a traceback from deep inside
     torch, or as silently meaningless results)."""
@@ -183,3 +130,45 @@ def add_hidden_alias(parser, option: str, dest: str, **kwargs) -> None:
     """An earlier spelling of an option (e.g. --adam_beta1 for --adam_beta_1): it keeps working but --help shows
     only the current one. Add it after the current option, whose default it leaves alone."""
     parser.add_argument(option, dest=dest, default=argparse.SUPPRESS, help=argparse.SUPPRESS, **kwargs)
+
+
+def run_main(prog: str, main: Callable[[Optional[list]], Optional[int]], argv: Optional[list] = None) -> int:
+    """Run a script's `main(argv)` and return its exit status; bad input ends it in one line on stderr,
+    "<prog>: error: <message>", exit status 1, with no traceback: the project's `InputError`s (configs, checkpoints,
+    datasets, mismatches), a disk that refused a write, a path that is missing, in the way or not permitted, and
+    a training run that cannot go on.
+    Anything else is a bug and keeps its traceback. Use as `sys.exit(run_main("train.py", main))`."""
+    try:
+        return main(argv) or 0
+    except (InputError, WriteError, TrainingError, FileNotFoundError, FileExistsError, NotADirectoryError,
+            IsADirectoryError, PermissionError) as e:
+        message = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+        print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
+        return 1
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (a count of steps, frames, workers, ...)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = finite_float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def existing_dir(text: str) -> Path:
+    """argparse type: a directory that exists."""
+    path = Path(text)
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: {'not a directory' if path.exists() else 'no such directory'}")
+    return path

@@ -6,8 +6,10 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from common.errors import InputError
 
-class ConfigError(ValueError):
+
+class ConfigError(InputError):
     """A config file or dict that does not describe a valid model."""
 
 

@@ -7,7 +7,12 @@ import os
 DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
 
 
-class CheckpointError(ValueError):
+class InputError(ValueError):
+    """Bad input a user can fix (a flag value, a file, a config, a dataset): a script ends on its message, one line,
+    with no traceback (`common.cli.run_main`)."""
+
+
+class CheckpointError(InputError):
     """A checkpoint whose files, kind or weights do not match what the model expects."""
 
 
@@ -19,7 +24,7 @@ class TrainingError(RuntimeError):
     """A training run that cannot go on (bad arguments for the data, too many non-finite steps, ...)."""
 
 
-class DataMismatchError(ValueError):
+class DataMismatchError(InputError):
     """A dataset and a model (config or checkpoint), or the arguments that join them, that do not fit together:
     window length vs T, token grid vs S, vocabulary, action ids, example range."""
 
@@ -57,9 +62,3 @@ def writing(what: str, path):
         if fault is None:
             raise
         raise WriteError(f"could not write {what} to {path}: {fault[1]}", fault[0]) from e
-
-
-def input_error_exit(prog: str, error: Exception) -> SystemExit:
-    """The one-line exit of a script for a bad or missing input (`raise input_error_exit("lam.train", e) from None`):
-    the message already names the file; a KeyError's str() would quote it."""
-    return SystemExit(f"{prog}: error: {error.args[0] if isinstance(error, KeyError) else error}")

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
+from common.errors import TrainingError
 from common.files import COMPLETE_MARKER, TMP_PREFIX, atomic_directory, is_complete
 from common.integrity import verify_manifest
 
@@ -35,8 +36,9 @@ EMA_DIR = "ema"  # a checkpoint's weight-average folder (train.py --ema_decay)
 _CHECKPOINT_RE = re.compile(rf"^{CHECKPOINT_PREFIX}(\d+)$")
 
 
-class TrainingStateError(RuntimeError):
-    """A checkpoint directory that is missing, incomplete or does not match the run."""
+class TrainingStateError(TrainingError):
+    """A checkpoint directory that is missing, incomplete or does not match the run (a script ends on its message,
+    one line: `common.cli.run_main`)."""
 
 
 # ---------------------------------------------------------------- JSON

@@ -48,7 +48,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from common.cli import add_hidden_alias
+from common.cli import add_hidden_alias, non_negative_int, positive_int, run_main
 
 HZ = 35  # Doom's fixed tic rate; we record every tic.
 BUTTON_NAMES = ("MOVE_FORWARD", "MOVE_BACKWARD", "TURN_LEFT", "TURN_RIGHT", "USE")
@@ -273,6 +273,22 @@ def check_maps(maps: Sequence[str]):
             problems.append(f"{unknown}: {wad} has {known[0]}..{known[-1]}")
     if problems:
         raise ValueError(f"unknown map(s) {'; '.join(problems)}")
+
+
+def map_name(text: str) -> str:
+    """argparse type of the map flags: a map its bundled WAD holds (check_maps), e.g. MAP01 or E1M1. Without ViZDoom
+    installed only the form of the name is checked (a world that is already built needs no engine)."""
+    try:
+        wad = _wad_path(text)
+    except ImportError:
+        if is_episode_map(text) or (len(text) == 5 and text.startswith("MAP") and text[3:].isdigit()):
+            return text
+        raise argparse.ArgumentTypeError(f"unknown map {text!r}: name maps such as MAP01 (freedoom2.wad) or E1M1 "
+                                         f"(freedoom1.wad)") from None
+    known = wad_maps(wad)
+    if text not in known:
+        raise argparse.ArgumentTypeError(f"unknown map {text!r}: {wad_name(text)} has {known[0]}..{known[-1]}")
+    return text
 
 
 def make_game(map_name: str, cfg: WorldConfig, workdir: Optional[str] = None):
@@ -520,28 +536,6 @@ def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int,
     }
 
 
-def mirror_split(data: dict) -> dict:
-    """The split as seen in a mirror: every frame flipped left-right, with the actions that make the flipped walk.
-
-    A mirror image of a first-person view is the view of the mirrored map from the mirrored pose (the map reflected
-    across its x axis: (x, y, heading) -> (x, -y, -heading)), so turning left becomes turning right: TURN_LEFT and
-    TURN_RIGHT swap, the angular velocity changes sign, and moving forward or back stays as it was. Lighting and
-    geometry are unchanged by the reflection, so a mirrored walk is a walk the engine could have rendered (only
-    the textures read backwards). The frames stay a view of `data`'s (np.save writes it in chunks), every other
-    array is new; the episode order and segment ids are kept.
-    """
-    left, right = BUTTON_NAMES.index("TURN_LEFT"), BUTTON_NAMES.index("TURN_RIGHT")
-    buttons = np.array(data["actions_buttons"], dtype=np.float32)
-    buttons[:, [left, right]] = buttons[:, [right, left]]
-    return {
-        **data,
-        "frames": data["frames"][:, :, ::-1],
-        "actions_buttons": buttons,
-        "actions_driving_command": np.asarray(data["actions_driving_command"], np.float32) * np.float32([1, -1]),
-        "poses": np.asarray(data["poses"], np.float32) * np.float32([1, -1, -1]),
-    }
-
-
 def _atomic_write(path: Path, write):
     """Call write(file object) on a temp file next to `path`, then rename it into place."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -609,31 +603,26 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescrip
     pass
 
 
-def main():
+def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=_HelpFormatter)
     p.add_argument("--output_dir", default="data/sample/raw", help="directory for train.npz, val.npz and the sidecar")
     add_hidden_alias(p, "--out_dir", "output_dir")  # the spelling before train.py's was adopted
-    p.add_argument("--seed", type=int, default=0, help="master seed; every episode's seed derives from it")
-    p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS),
+    p.add_argument("--seed", type=non_negative_int, default=0,
+                   help="master seed; every episode's seed derives from it")
+    p.add_argument("--train_maps", nargs="+", type=map_name, default=list(TRAIN_MAPS),
                    help=f"maps for training: {MAP_NAMES_HELP}")
-    p.add_argument("--val_maps", nargs="+", default=list(VAL_MAPS),
+    p.add_argument("--val_maps", nargs="+", type=map_name, default=list(VAL_MAPS),
                    help="maps for validation (held-out episodes on these maps; the default: the first 8 training "
                         "maps and the held-out map)")
-    p.add_argument("--train_episodes", type=int, default=10, help="training episodes per training map")
-    p.add_argument("--val_episodes", type=int, default=1, help="validation episodes per validation map")
-    p.add_argument("--episode_len", type=int, default=2000, help="recorded tics (frames) per episode, 35 per second")
-    p.add_argument("--train_episode_len", type=int, default=None,
+    p.add_argument("--train_episodes", type=positive_int, default=10, help="training episodes per training map")
+    p.add_argument("--val_episodes", type=positive_int, default=1, help="validation episodes per validation map")
+    p.add_argument("--episode_len", type=positive_int, default=2000,
+                   help="recorded tics (frames) per episode, 35 per second")
+    p.add_argument("--train_episode_len", type=positive_int, default=None,
                    help="tics per training episode, if not --episode_len (validation keeps --episode_len)")
-    p.add_argument("--workers", type=int, default=2, help="processes generating episodes in parallel")
+    p.add_argument("--workers", type=positive_int, default=2, help="processes generating episodes in parallel")
     p.add_argument("--overwrite", action="store_true", help="regenerate even if matching outputs exist")
-    args = p.parse_args()
-    train_len = args.episode_len if args.train_episode_len is None else args.train_episode_len
-    if min(args.train_episodes, args.val_episodes, args.episode_len, train_len, args.workers) < 1:
-        p.error("--train_episodes, --val_episodes, --episode_len, --train_episode_len and --workers must be >= 1")
-    try:
-        check_maps(args.train_maps + args.val_maps)
-    except ValueError as e:
-        p.error(str(e))
+    args = p.parse_args(argv)
     build_sample_world(args.output_dir, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=args.val_episodes,
                        episode_len=args.episode_len, workers=args.workers, overwrite=args.overwrite,
@@ -641,4 +630,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("data.sample_world", main))

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from common.errors import IntegrityError, writing
+from common.errors import InputError, IntegrityError, writing
 from common.integrity import update_manifest, verify_manifest
 
 REQUIRED_KEYS = ("num_images", "s", "vocab_size", "hz")
@@ -37,7 +37,7 @@ CHUNK = 1 << 22  # elements per chunk for full scans: bounded memory on 10 M-fra
 SMALL_FILE_BYTES = 64 << 20  # action files up to this size are fully scanned for NaN/inf on load
 
 
-class TokenDatasetError(ValueError):
+class TokenDatasetError(InputError):
     """A token dataset directory (or data given to the writer) that does not follow the format."""
 
 

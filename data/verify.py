@@ -13,6 +13,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from common.cli import existing_dir, run_main
 from common.errors import IntegrityError
 from common.integrity import MANIFEST_NAME, check_file, list_files, read_manifest
 from data.token_dataset import TokenDatasetError, read_metadata
@@ -46,16 +47,13 @@ def verify_directory(directory: Path, bar) -> int:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("dirs", nargs="+", type=Path, help="Dataset (or checkpoint) directories to verify.")
+    p.add_argument("dirs", nargs="+", type=existing_dir, help="Dataset (or checkpoint) directories to verify.")
     args = p.parse_args(argv)
-    for d in args.dirs:
-        if not d.is_dir():
-            sys.exit(f"error: {d}: not a directory")
     total = sum(e["size"] for d in args.dirs for e in (read_manifest_or_empty(d)).values())
     with tqdm(total=total, unit="B", unit_scale=True, desc="verify", file=sys.stderr) as bar:
         problems = sum(verify_directory(d, bar) for d in args.dirs)
-    if problems:
-        sys.exit(f"error: {problems} problem(s) found; restore or re-create the files named above")
+    if problems:  # run_main's one line, exit status 1
+        raise IntegrityError(f"{problems} problem(s) found; restore or re-create the files named above")
     print(f"all files match their recorded digests ({total / 1e6:.1f} MB checked)")
 
 
@@ -67,4 +65,4 @@ def read_manifest_or_empty(directory: Path) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("data.verify", main))

@@ -1,12 +1,12 @@
-"""GENIE dynamics model: spatio-temporal transformer with factored logits, trained and sampled with MaskGIT."""
+"""GENIE dynamics model: spatio-temporal transformer with factored logits, trained and sampled with MaskGIT.
+
+Importing the package loads only the network (genie.model and what it needs); the training collator
+(genie.masking), the sampler (genie.sampling), inference (genie.inference) and the scripts are imported by name.
+"""
 from common.errors import CheckpointError
 from genie.config import GenieConfig, TrainingRecipe
-from genie.kv_cache import TemporalKVCache
-from genie.masking import MaskGITBatch, get_maskgit_collator
-from genie.model import STMaskGIT
-from genie.objectives import LossOutput
-from genie.sampling import maskgit_sample
+from genie.model import LossOutput, MaskGITBatch, STMaskGIT
+from genie.transformer import TemporalKVCache
 
-# inference: genie.inference.generate / teacher_forced (not exported here: genie/generate.py is the script)
 __all__ = ["CheckpointError", "GenieConfig", "LossOutput", "MaskGITBatch", "STMaskGIT", "TemporalKVCache",
-           "TrainingRecipe", "get_maskgit_collator", "maskgit_sample"]
+           "TrainingRecipe"]

@@ -16,12 +16,14 @@ The last stdout line is a JSON object.
 import argparse
 import json
 import math
+import sys
 
 import numpy as np
 import torch
 
-from common.errors import DataMismatchError, input_error_exit
-from data import RawTokenDataset, TokenDatasetError
+from common.cli import run_main
+from common.errors import DataMismatchError
+from data import RawTokenDataset
 from genie.factorization import factorize_token_ids
 
 
@@ -140,13 +142,8 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def main(argv=None) -> None:
-    args = parse_args(argv)
-    try:
-        result = run(args)
-    except (TokenDatasetError, DataMismatchError, OSError) as e:  # one line naming the file, not a traceback
-        raise input_error_exit("genie.baselines", e) from None
-    print(json.dumps(result))
+    print(json.dumps(run(parse_args(argv))))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("genie.baselines", main))

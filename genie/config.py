@@ -3,8 +3,9 @@
 A config.json (the published GENIE_35M one, ours, or a `--genie_config` file) holds the fields of both: the
 published file already mixes architecture with two training knobs (max_corrupt_rate, non_mlm_ratio).
 `GenieConfig.from_dict` keeps the architecture and ignores the recipe's keys; `TrainingRecipe.from_dict` the other
-way round; a key that belongs to neither is an error. Checkpoints saved before the split (their config.json has
-`teacher_forced_ratio`) load through `LEGACY_RECIPE_KEYS`.
+way round; a key that belongs to neither is an error. config.json files written by earlier versions of this repo
+load too (`_legacy`): the former share of whole-frame masking becomes the masking choice, and the keys of options
+that were measured, dropped and deleted are accepted at their "off" values.
 """
 import dataclasses
 import json
@@ -16,7 +17,7 @@ from typing import List, Optional
 from common.config import ConfigError, dataclass_from_dict, load_json
 from common.errors import DataMismatchError
 
-MLP_ACTIVATIONS = ("gelu", "relu2", "swiglu")
+MASKING_SCHEMES = ("published", "whole_frames")
 
 
 @dataclass
@@ -66,17 +67,11 @@ class GenieConfig:
     # With the pointer: each token's input also gets + embed(which of those neighbours in its previous frame hold the
     # same token), so the model sees how the scene moved at every position (motion evidence for the pointer).
     copy_match_input: bool = False
-    # 2-D rotary positions in the spatial attention (genie/rope.py): scores depend on the tokens' relative offset.
+    # 2-D rotary positions in the spatial attention (genie/transformer.py): scores depend on the tokens' relative offset.
     spatial_rope: bool = False
-    # Rotary positions in the temporal attention too (genie/rope.py): half of each head's channels turned by the
+    # Rotary positions in the temporal attention too (genie/transformer.py): half of each head's channels turned by the
     # frame index, so a query scores a key by how many frames back it lies, whatever its own frame.
     temporal_rope: bool = False
-    # An input of how corrupted each context frame is (TrainingRecipe.context_noise_ratio): + level * a learned
-    # vector on every token of the frame. Inference passes clean or generated frames at level 0, so it adds nothing.
-    context_noise_input: bool = False
-    # The MLP's nonlinearity (genie/transformer.py `Mlp`): "gelu" (published), "relu2" (ReLU squared, the same
-    # parameters) or "swiglu" (a gated SiLU at 2/3 of the hidden width; fc1 twice as wide as its output).
-    mlp_activation: str = "gelu"
 
     def __post_init__(self):
         for name in ("num_layers", "num_heads", "d_model", "T", "S", "image_vocab_size", "num_factored_vocabs"):
@@ -97,9 +92,6 @@ class GenieConfig:
         if not 1 <= self.num_prompt_frames < self.T:
             raise ConfigError(f"GenieConfig: num_prompt_frames {self.num_prompt_frames} must be in [1, T={self.T})")
         self._check_actions()
-        if self.mlp_activation not in MLP_ACTIVATIONS:
-            raise ConfigError(f"GenieConfig: mlp_activation must be one of {MLP_ACTIVATIONS}, "
-                              f"got {self.mlp_activation!r}")
         for name in ("spatial_rope", "temporal_rope"):
             if getattr(self, name) and (self.d_model // self.num_heads) % 4:
                 raise ConfigError(f"GenieConfig: {name} needs a head width (d_model / num_heads = "
@@ -171,63 +163,28 @@ class GenieConfig:
 
 @dataclass
 class TrainingRecipe:
-    """How the dynamics model is trained: MaskGIT corruption and the opt-in objectives (genie/masking.py,
-    genie/objectives.py). Defaults are the published recipe; nothing here changes the network or its inference."""
-    # published MaskGIT corruption: random factor values at up to this rate, and this share of the batches
-    # corrupted more in later frames (closer to autoregressive inference)
+    """How the dynamics model is trained (genie/masking.py, the loss in genie/model.py). Defaults are the published
+    recipe; nothing here changes the network or its inference."""
+    # which tokens a training example hides (genie/masking.py):
+    # "published": the published MaskGIT corruption and masking (partly masked frames from a random first one on);
+    # "whole_frames": every 2nd or 3rd frame masked whole, as the challenge evaluates: each masked frame predicted
+    # from whole earlier frames, nothing of itself revealed (every shipped sample-world recipe)
+    masking: str = "published"
+    # random factor values at up to this rate in every window (both schemes)
     max_corrupt_rate: float = 0.2
+    # "published" only: this share of the batches corrupted more in later frames (closer to autoregressive inference)
     non_mlm_ratio: float = 0.5
-    # this share of the examples masks every 2nd or 3rd frame whole, as the challenge evaluates: each masked frame
-    # is predicted from whole earlier frames, nothing of itself revealed
-    whole_frame_mask_ratio: float = 0.0
-    # of those examples, this share starts its masked frames anywhere in 1..num_prompt_frames instead of within the
-    # first period, so that a target also follows a long run of clean frames, as a rollout's first generated frame
-    # follows its prompt (without it no target follows more than 3)
-    clean_prefix_ratio: float = 0.0
-    # this share of the batches is two-stream: the clean window as context, every frame t >= 1 a target over
-    # frames < t (the computation of the cached evaluation, with gradients)
-    two_stream_ratio: float = 0.0
-    # of the two-stream targets, this share is partly masked (MaskGIT's cosine rate) instead of whole
-    two_stream_partial_ratio: float = 0.0
     # this share of the examples has part of its masked tokens filled with the model's own guesses, as MaskGIT's
     # later steps see them at inference, so the model learns how far to trust them
     self_reveal_ratio: float = 0.0
-    # this share of the examples first has each fully masked frame filled with the model's own prediction,
-    # and the frame after it becomes the target instead: predicted from a context whose last frame is the model's
-    # guess, as every frame after the first is in a free-running rollout
-    own_context_ratio: float = 0.0
-    # the temperature of those guesses: 0 each factor's argmax (the greedy guesses these options began with); > 0
-    # whole tokens drawn from the model's distribution (a copy head's mixture), as sampled rollouts reveal them
-    guess_temperature: float = 0.0
-    # this share of the examples has its unmasked frames 1.. corrupted (each token replaced by a random one with
-    # probability level, level ~ U(0, context_noise_max) per frame), as a rollout's own frames are wrong in places;
-    # with GenieConfig.context_noise_input the model is told each frame's level, so it learns how far to trust it
-    context_noise_ratio: float = 0.0
-    context_noise_max: float = 0.0
-    # weight of a second loss beside the CE, in training only: for every bit of the predicted token's id, the binary
-    # cross entropy of the probability the prediction puts on that bit's true value (genie/objectives.py, bit_loss).
-    # Tokens a few bits apart decode to nearly the same pixels, and the expected number of wrong bits of a drawn
-    # token is the sum of those probabilities' complements, which CE alone does not shape. Needs a power-of-two
-    # factored vocabulary; 0: off (the CE alone)
-    bit_loss_weight: float = 0.0
-    # every training window's forward-speed inputs (the columns speed_jitter_columns of the concatenated real action
-    # vector) scaled by one factor (1 + speed_jitter) ** U(-1, 1) drawn per window. How far a step forward moves the
-    # view depends on how deep the room is, which the speed does not say; with the speed's magnitude unreliable the
-    # model has to read the gain off the frames it has already seen (a new map's larger rooms move the view less
-    # per step than the training maps'). 0: off
-    speed_jitter: float = 0.0
-    speed_jitter_columns: Optional[List[int]] = None
 
     def __post_init__(self):
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, (int, float)) and not 0.0 <= value <= 1.0:
-                raise ConfigError(f"TrainingRecipe: {f.name} must be in [0, 1], got {value}")
-        if self.speed_jitter > 0 and not self.speed_jitter_columns:
-            raise ConfigError("TrainingRecipe: speed_jitter needs speed_jitter_columns (the action columns to scale)")
-        if any(c < 0 for c in self.speed_jitter_columns or []):
-            raise ConfigError(f"TrainingRecipe: speed_jitter_columns must be column indices >= 0, got "
-                              f"{self.speed_jitter_columns}")
+        if self.masking not in MASKING_SCHEMES:
+            raise ConfigError(f"TrainingRecipe: masking must be one of {MASKING_SCHEMES}, got {self.masking!r}")
+        for name in ("max_corrupt_rate", "non_mlm_ratio", "self_reveal_ratio"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+                raise ConfigError(f"TrainingRecipe: {name} must be in [0, 1], got {value}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -242,22 +199,45 @@ class TrainingRecipe:
         return cls.from_dict(load_json(json_path, "GENIE config"), source=str(json_path))
 
 
-# config.json keys written by earlier versions of this repo -> their TrainingRecipe field
-LEGACY_RECIPE_KEYS = {"teacher_forced_ratio": "whole_frame_mask_ratio"}
+# config.json keys of earlier versions: the share of whole-frame masking (named teacher_forced_ratio before that)
+LEGACY_MASKING_KEYS = ("whole_frame_mask_ratio", "teacher_forced_ratio")
+# options measured, dropped and deleted (docs/experiments.md, "Removed options"; their code is in git history up to
+# commit 307ac4a): each key loads at its value that turned the option off, and any other value is an error
+REMOVED_KEYS = {"two_stream_ratio": 0.0, "two_stream_partial_ratio": 0.0, "own_context_ratio": 0.0,
+                "guess_temperature": 0.0, "clean_prefix_ratio": 0.0, "context_noise_ratio": 0.0,
+                "context_noise_max": 0.0, "bit_loss_weight": 0.0, "speed_jitter": 0.0, "speed_jitter_columns": None,
+                "context_noise_input": False, "mlp_activation": "gelu"}
+
+
+def _legacy(d: dict, source: str) -> dict:
+    """A config dict of any version -> one with today's keys (see the module doc)."""
+    d = dict(d)
+    for key, off in REMOVED_KEYS.items():
+        if key in d and d.pop(key) != off:
+            raise ConfigError(f"{source}: {key} was a dropped experiment and has been removed (its last code is in "
+                              f"git commit 307ac4a, its numbers in docs/experiments.md); only {off!r} loads")
+    for key in LEGACY_MASKING_KEYS:
+        if key in d:
+            share = d.pop(key)
+            if share not in (0, 1) or "masking" in d:
+                raise ConfigError(f"{source}: {key} {share!r} is no longer supported: set \"masking\" to "
+                                  f"\"published\" (was 0) or \"whole_frames\" (was 1)")
+            d["masking"] = "whole_frames" if share == 1 else "published"
+    return d
 
 
 def _split(d: dict, source: str):
     """A config dict -> (architecture dict, recipe dict); unknown keys are errors naming both dataclasses."""
     if not isinstance(d, dict):
         raise ConfigError(f"{source}: expected a JSON object, got {type(d).__name__}")
+    d = _legacy(d, source)
     model_keys = {f.name for f in dataclasses.fields(GenieConfig)}
     recipe_keys = {f.name for f in dataclasses.fields(TrainingRecipe)}
-    unknown = sorted(set(d) - model_keys - recipe_keys - set(LEGACY_RECIPE_KEYS))
+    unknown = sorted(set(d) - model_keys - recipe_keys)
     if unknown:
         raise ConfigError(f"{source}: unknown key(s) {unknown}; known keys: GenieConfig {sorted(model_keys)}, "
                           f"TrainingRecipe {sorted(recipe_keys)}")
-    recipe = {LEGACY_RECIPE_KEYS.get(k, k): v for k, v in d.items() if k in recipe_keys or k in LEGACY_RECIPE_KEYS}
-    return {k: v for k, v in d.items() if k in model_keys}, recipe
+    return {k: v for k, v in d.items() if k in model_keys}, {k: v for k, v in d.items() if k in recipe_keys}
 
 
 def save_config(json_path, config: GenieConfig, recipe: Optional[TrainingRecipe] = None) -> None:

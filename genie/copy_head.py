@@ -17,7 +17,7 @@ its K previous-frame neighbours hold the same token. That is token-level motion 
 position came from in the last step), which a spatio-temporal transformer, attending over time only at the same
 position, otherwise has to infer through several layers.
 """
-from typing import Optional, Tuple
+from typing import Callable, NamedTuple, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -25,6 +25,36 @@ from einops import rearrange
 from torch import nn
 
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
+
+
+class Prediction(NamedTuple):
+    """A model's prediction at some positions: factored logits (..., V, F) (log-probabilities for a model with a
+    copy head) and, for a copy head's mixture (`CopyHead`), what decodes it as whole tokens:
+
+    - mode_ids, mode_probs (...): its most probable whole tokens and their probabilities (`CopyHead.mode`), which
+      greedy steps take instead of the factor-wise argmax of the logits;
+    - copy_log_weights (..., K + 1), copy_sources (..., K), readout_logits (..., V, F): its parts (log weights of
+      the K previous-frame neighbours and, last, of a new token; the neighbours' token ids; the readout's logits),
+      from which sampling steps draw whole tokens (`sample_mixture_tokens`) instead of each factor on its own.
+
+    Layouts: `logits` and `readout_logits` share one (e.g. (B, V, F, H, W) for frames), the others put the
+    positions first and their own axis last (e.g. (B, H, W) and (B, H, W, K))."""
+    logits: torch.Tensor
+    mode_ids: Optional[torch.Tensor] = None
+    mode_probs: Optional[torch.Tensor] = None
+    copy_log_weights: Optional[torch.Tensor] = None
+    copy_sources: Optional[torch.Tensor] = None
+    readout_logits: Optional[torch.Tensor] = None
+
+    def map(self, logits_fn: Callable[[torch.Tensor], torch.Tensor],
+            positions_fn: Callable[[torch.Tensor], torch.Tensor]) -> "Prediction":
+        """A `Prediction` with logits_fn applied to the fields in the logits' layout and positions_fn to the
+        others (None fields stay None)."""
+        return Prediction(*(None if v is None else (logits_fn if name in LOGITS_LAYOUT else positions_fn)(v)
+                            for name, v in zip(self._fields, self)))
+
+
+LOGITS_LAYOUT = ("logits", "readout_logits")
 
 
 class CopyHead(nn.Module):

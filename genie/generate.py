@@ -28,13 +28,12 @@ import torch
 from einops import rearrange
 from tqdm.auto import tqdm
 
-from common.cli import (add_device_arg, add_num_threads_arg, add_stall_ratio_arg, add_token_choice_args,
-                        apply_cpu_settings, check_stall_ratio, finite_float, resolve_device, setup_logging)
-from common.config import ConfigError
-from common.errors import CheckpointError, DataMismatchError
-from data import RawTokenDataset, TokenDatasetError, write_token_dataset
-from genie.actions import LATENT_ACTION_NAME, prepare_action_streams, stack_streams, window_actions
+from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, run_main, setup_logging
+from common.errors import DataMismatchError
+from data import RawTokenDataset, write_token_dataset
+from genie.action_data import LATENT_ACTION_NAME, prepare_action_streams, stack_streams, window_actions
 from genie.config import check_dataset_matches
+from genie.decoding import add_decoding_args, apply_decoding, check_decoding_args, sampler_kwargs
 from genie.inference import generate as generate_frames, teacher_forced
 from genie.model import STMaskGIT
 
@@ -42,7 +41,8 @@ logger = logging.getLogger("genie.generate")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description="Generate future frames (tokens) from a GENIE checkpoint.",
+    p = argparse.ArgumentParser(prog="generate.py",
+                                description="Generate future frames (tokens) from a GENIE checkpoint.",
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--val_data_dir", default="data/sample/val" if Path("data/sample/val").exists() else "data/val_v1.1",
                    help="Token dataset directory whose windows provide the prompts and the ground truth.")
@@ -70,27 +70,18 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--actions_from_data", action="store_true",
                    help="Control mode: condition the generated frames on the dataset's own actions (real and, "
                         "unless --latent_actions is given, latent) instead of only the prompt's.")
-    p.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT decoding steps per frame.")
-    p.add_argument("--temperature", type=finite_float, default=0.0, help="Sampling temperature; 0 samples greedily.")
-    p.add_argument("--copy_bias", type=finite_float, default=0.0,
-                   help="Models with a copy head (copy_radius): added to every previous-frame neighbour's score "
-                        "(e^bias times the copy weight). > 0 gives sharper futures closer to the previous frame; "
-                        "0 is the model as trained.")
-    add_token_choice_args(p)
-    add_stall_ratio_arg(p)
-    p.add_argument("--unmask_mode", default="random", choices=("random", "greedy"),
-                   help="Which tokens each MaskGIT step reveals: random (published default) or most confident.")
     add_device_arg(p)
     add_num_threads_arg(p)
     p.add_argument("--seed", type=int, default=0, help="Seed of the sampling randomness.")
+    add_decoding_args(p)
     args = p.parse_args(argv)
-    for name in ("window_size", "stride", "num_examples", "example_stride", "batch_size", "maskgit_steps"):
+    for name in ("window_size", "stride", "num_examples", "example_stride", "batch_size"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     if not 1 <= args.num_prompt_frames < args.window_size:
         p.error(f"--num_prompt_frames must be in [1, window_size={args.window_size}), got {args.num_prompt_frames}")
-    if args.example_ind < 0 or args.temperature < 0:
-        p.error("--example_ind and --temperature must be >= 0")
+    if args.example_ind < 0:
+        p.error(f"--example_ind must be >= 0, got {args.example_ind}")
     if args.latent_actions is not None:
         try:
             args.latent_actions = [int(v) for v in args.latent_actions.split(",")]
@@ -102,7 +93,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         if len(args.latent_actions) != num_new:
             p.error(f"--latent_actions: {len(args.latent_actions)} ids for {num_new} generated frames "
                     f"(window_size {args.window_size} - num_prompt_frames {args.num_prompt_frames})")
-    check_stall_ratio(p, args.stall_ratio, args.num_prompt_frames)
+    check_decoding_args(p, args, args.num_prompt_frames)
     if args.teacher_force_time and args.stall_ratio is not None:
         p.error("--stall_ratio holds stalled free-running futures; --teacher_force_time predicts each frame from "
                 "the ground truth, which never stalls")
@@ -128,8 +119,6 @@ def check_compatible(model: STMaskGIT, dataset: RawTokenDataset, args) -> None:
                                     f"codebook)")
     if args.actions_from_data and not config.uses_actions:
         raise DataMismatchError(f"--actions_from_data: the checkpoint {args.checkpoint_dir} takes no actions")
-    if args.copy_bias and config.copy_radius is None:
-        raise DataMismatchError(f"--copy_bias: the checkpoint {args.checkpoint_dir} has no copy head (copy_radius)")
     last = args.example_ind + (args.num_examples - 1) * args.example_stride
     if last >= len(dataset):
         raise DataMismatchError(f"{dataset.data_dir}: examples {args.example_ind}..{last} requested but the dataset "
@@ -164,8 +153,7 @@ def predict(model: STMaskGIT, gt_BTHW: torch.Tensor, args, generator: torch.Gene
     actions_BTD / latent_BT: the windows' action rows (action-conditioned models); with --latent_actions the
     generated frames' latent rows are the played ids.
     """
-    kwargs = dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
-                  generator=generator, actions=actions_BTD, latent_actions=latent_BT)
+    kwargs = dict(**sampler_kwargs(args), generator=generator, actions=actions_BTD, latent_actions=latent_BT)
     P, T = args.num_prompt_frames, gt_BTHW.shape[1]
     if args.teacher_force_time:
         # All frames 1..T-1 from their ground-truth past in one cached pass per MaskGIT step; keep P..T-1.
@@ -208,9 +196,7 @@ def generate(args) -> dict:
     model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device)
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride)
     check_compatible(model, dataset, args)
-    model.set_copy_bias(args.copy_bias)
-    model.set_greedy_tokens(args.greedy_tokens)
-    model.set_joint_sampling(args.sampled_tokens == "joint")
+    apply_decoding(model, args, args.checkpoint_dir)
     s, P, T = dataset.metadata["s"], args.num_prompt_frames, args.window_size
     generator = torch.Generator(device).manual_seed(args.seed)
     K = model.config.num_latent_actions
@@ -248,8 +234,7 @@ def generate(args) -> dict:
                     stride=args.stride, checkpoint_dir=str(args.checkpoint_dir), val_data_dir=str(args.val_data_dir))
     actions = None
     if model.copy_head is not None:
-        metadata.update(copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens,
-                        sampled_tokens=args.sampled_tokens)
+        metadata.update(copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens)
     if model.config.uses_actions:
         metadata.update(actions_from_data=args.actions_from_data, latent_actions=args.latent_actions)
     if K:
@@ -263,14 +248,12 @@ def generate(args) -> dict:
     return {**metadata, "num_images": len(video_NHW)}
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
     args = parse_args(argv)
     setup_logging()
-    try:
-        generate(args)
-    except (DataMismatchError, TokenDatasetError, ConfigError, CheckpointError, OSError) as e:
-        sys.exit(f"generate.py: error: {e}")
+    generate(args)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("generate.py", main))

@@ -1,7 +1,7 @@
 """Inference with the temporal KV cache: autoregressive generation and the challenge's teacher-forced evaluation.
 
 Frame t depends only on frames <= t (causal temporal attention, per-frame spatial attention), so each layer's
-temporal keys/values of the frames already known are kept (genie/kv_cache.py) and each MaskGIT step computes only
+temporal keys/values of the frames already known are kept (`TemporalKVCache`) and each MaskGIT step computes only
 the frame being sampled. genie/reference.py holds the same computations without the cache (full recomputation,
 the published procedure); the tests hold the two equal and benchmarks/bench_eval.py measures the difference.
 """
@@ -10,10 +10,9 @@ from typing import Optional, Tuple
 import torch
 from einops import rearrange
 
-from genie.copy_head import previous_frames
-from genie.kv_cache import TemporalKVCache
-from genie.sampling import GREEDY_TEMPERATURE, LOGITS_LAYOUT, Prediction, maskgit_sample
-from genie.transformer import TemporalMode
+from genie.copy_head import LOGITS_LAYOUT, Prediction, previous_frames
+from genie.sampling import GREEDY_TEMPERATURE, maskgit_sample
+from genie.transformer import TemporalKVCache, TemporalMode
 
 
 def _frames(cond_BTC: Optional[torch.Tensor], start: int, end: int) -> Optional[torch.Tensor]:

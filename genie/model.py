@@ -4,11 +4,14 @@ token ids (B, T, H, W) -> embed (factored token embeddings + positions + optiona
 -> spatio-temporal transformer -> factored readout: logits (B, V, F, T, H, W), factor f of value v.
 Opt-in (config.copy_radius): the readout is mixed with a pointer to the previous frame's tokens (genie/copy_head.py),
 whose "logits" are then log-probabilities; every path that reads out passes the frame before each frame for it.
-Parameter names, shapes and math follow docs/formats.md §3. The training objectives live in genie/objectives.py
-(`forward` computes them, so DDP sees one call), inference in genie/inference.py, the uncached reference versions
-in genie/reference.py and checkpoint files in genie/checkpoint.py.
+Parameter names, shapes and math follow docs/formats.md §3.
+
+The model owns its training loss (`forward`, so that DDP sees one call): factored cross entropy over the masked
+tokens of a collated batch (genie/masking.py), read out at those tokens only. Inference is genie/inference.py, the
+uncached reference versions genie/reference.py, checkpoint files genie/checkpoint.py.
 """
 import math
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Optional, Union
 
@@ -17,19 +20,41 @@ from einops import rearrange
 from huggingface_hub import PyTorchModelHubMixin
 from torch import nn
 
-from genie import checkpoint, objectives
+from genie import checkpoint
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, TrainingRecipe
-from genie.copy_head import CopyHead, previous_frames
-from genie.factorization import factorize_token_ids
-from genie.kv_cache import TemporalKVCache
-from genie.masking import MaskGITBatch
-from genie.sampling import Prediction
-from genie.transformer import STTransformer, TemporalMode
+from genie.copy_head import CopyHead, Prediction, previous_frames
+from genie.factorization import factorize_token_ids, unfactorize_token_ids
+from genie.metrics import factored_argmax_correct, factored_cross_entropy
+from genie.transformer import STTransformer, TemporalKVCache, TemporalMode
 
 # how greedy decoding turns a copy head's mixture into tokens (STMaskGIT.set_greedy_tokens)
-GREEDY_TOKENS = ("joint", "factored", "best_neighbour")
+GREEDY_TOKENS = ("joint", "best_neighbour")
 MUP_BASE_D_MODEL = 256  # the published muP base shape (set_mup_shapes hard-codes d_model 256)
+
+
+@dataclass
+class MaskGITBatch:
+    """A collated training batch (genie/masking.py); token ids are int64 (B, T, H, W)."""
+    input_ids: torch.Tensor  # what the model sees: corrupted, the mask token where it is to predict
+    labels: torch.Tensor  # the clean tokens
+    actions: Optional[torch.Tensor] = None  # (B, T, D) float: the config's real action streams
+    latent_actions: Optional[torch.Tensor] = None  # (B, T) int64: latent action ids
+
+    def __post_init__(self):
+        if self.input_ids.dim() != 4 or self.labels.shape != self.input_ids.shape:
+            raise ValueError(f"MaskGITBatch: input_ids and labels must both be (B, T, H, W); got "
+                             f"{tuple(self.input_ids.shape)} and {tuple(self.labels.shape)}")
+
+    def to(self, device, non_blocking: bool = False) -> "MaskGITBatch":
+        return MaskGITBatch(**{f.name: None if getattr(self, f.name) is None else
+                               getattr(self, f.name).to(device, non_blocking=non_blocking) for f in fields(self)})
+
+
+@dataclass
+class LossOutput:
+    loss: torch.Tensor  # factored CE summed over factors, mean over the predicted tokens
+    acc: torch.Tensor  # argmax accuracy (every factor right) over the same tokens
 
 
 class FactorizedEmbedding(nn.Module):
@@ -72,12 +97,6 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.copy_head = None if config.copy_radius is None else CopyHead(
             config.d_model, config.copy_radius, config.num_factored_vocabs, config.factored_vocab_size,
             config.mask_token_id, config.copy_match_input)
-        # opt-in (config.context_noise_input): how corrupted a context frame is, as an input (with_context_noise)
-        self.context_noise_embed = nn.Parameter(torch.zeros(1, config.d_model)) if config.context_noise_input \
-            else None
-        # decoding settings (set_greedy_tokens, set_joint_sampling), not weights
-        self.joint_greedy = True
-        self.joint_sampling = True
 
     @property
     def mask_token_id(self) -> int:
@@ -153,16 +172,6 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             x_BTSC = x_BTSC + cond_BTC.unsqueeze(2).to(x_BTSC.dtype)
         return self.decoder(x_BTSC, mode, kv_cache, first_frame)
 
-    def with_context_noise(self, cond_BTC: Optional[torch.Tensor],
-                           noise_BT: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
-        """Frame conditioning (B, T, C) or None, plus each frame's context-noise level (B, T) times the learned
-        `context_noise_embed` when the model has that input and levels are given (training batches); unchanged
-        otherwise (inference: every frame at level 0)."""
-        if self.context_noise_embed is None or noise_BT is None:
-            return cond_BTC
-        noise_BTC = noise_BT.unsqueeze(-1) * self.context_noise_embed
-        return noise_BTC if cond_BTC is None else cond_BTC + noise_BTC.to(cond_BTC.dtype)
-
     def copy_sources(self, prev_BTHW: torch.Tensor) -> Optional[torch.Tensor]:
         """Tokens of the frame before each frame (B, T, H, W) (mask_token_id where unknown) -> what the copy head
         may copy at each position (B, T, S, K); None for a model without one (the published layout)."""
@@ -188,8 +197,6 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         mixture into tokens (GREEDY_TOKENS):
 
         - "joint" (the default): the mixture's most probable whole token (`CopyHead.mode`);
-        - "factored": each factor's argmax of the per-factor marginals (what this code did before; a token no
-          option proposed when the copy weight is spread over neighbours);
         - "best_neighbour": "joint"'s choice between a copy and a new token, but a copy takes the single most
           weighted neighbour's token rather than the token with the most weight summed over the neighbours holding
           it (which grows flat patches in rollouts; `CopyHead.mode`).
@@ -198,17 +205,8 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         weights."""
         if choice not in GREEDY_TOKENS:
             raise ValueError(f"greedy tokens must be one of {GREEDY_TOKENS}, got {choice!r}")
-        self.joint_greedy = choice != "factored"
         if self.copy_head is not None:
             self.copy_head.best_neighbour_copies = choice == "best_neighbour"
-
-    def set_joint_sampling(self, enabled: bool) -> None:
-        """Decoding setting of a model with a copy head: sampling at a temperature draws whole tokens from the
-        copy-or-new mixture (True, the default; `genie.sampling.sample_mixture_tokens`: an option, then for a new
-        token the readout's factors) or each factor from the per-factor marginals (False; the earlier behaviour,
-        which can pair two neighbours' factors into a token neither holds). No effect on a model without a copy
-        head; not saved with the weights."""
-        self.joint_sampling = bool(enabled)
 
     def readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Hidden states (..., C) -> factored logits (..., V, F).
@@ -220,25 +218,23 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
     def predict(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None,
                 with_mode: bool = True, greedy: bool = True) -> Prediction:
         """`readout`, plus, for a copy head's mixture (with_mode), what decoding takes instead of the factor-wise
-        logits: the most probable whole tokens (...) and their probabilities (...) (`CopyHead.mode`; joint_greedy)
-        and the mixture's parts for drawing whole tokens (joint_sampling). The mode is computed only when greedy
-        decoding reads it: not for greedy=False (a sampler at a temperature) nor with joint_greedy off."""
+        logits: the most probable whole tokens (...) and their probabilities (...) (`CopyHead.mode`) and the
+        mixture's parts, from which a sampler at a temperature draws whole tokens. The mode is computed only when
+        greedy decoding reads it: not for greedy=False (a sampler at a temperature)."""
         x_scaled = x_NC if self.readout_width_mult is None else x_NC / self.readout_width_mult
         logits = rearrange(self.out_x_proj(x_scaled), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
         if self.copy_head is None:
             return Prediction(logits)
         if sources_NK is None:
             raise ValueError("this model copies from the previous frame (copy_radius is set): pass copy_sources")
-        with_greedy, with_parts = with_mode and greedy and self.joint_greedy, with_mode and self.joint_sampling
-        if not (with_greedy or with_parts):
+        if not with_mode:
             return Prediction(self.copy_head(logits, x_NC, sources_NK))
         ids = probs = None
-        if with_greedy:
+        if greedy:
             mixture, ids, probs, log_weights = self.copy_head.forward_and_mode(logits, x_NC, sources_NK)
         else:
             mixture, log_weights = self.copy_head.forward_and_log_weights(logits, x_NC, sources_NK)
-        sampling_parts = (log_weights, sources_NK, logits) if with_parts else (None, None, None)
-        return Prediction(mixture, ids, probs, *sampling_parts)
+        return Prediction(mixture, ids, probs, log_weights, sources_NK, logits)
 
     def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
                latent_actions: Optional[torch.Tensor] = None,
@@ -271,10 +267,59 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             lambda v: rearrange(v, "B T (H W) ... -> B T H W ...", H=H))
         return prediction if with_mode else prediction.logits
 
-    def forward(self, batch: MaskGITBatch, recipe: Optional[TrainingRecipe] = None) -> objectives.LossOutput:
-        """The training loss of a collated batch (genie/objectives.py): factored CE and accuracy over the tokens
-        it predicts. `recipe` supplies the objectives' options (self_reveal_ratio); None: the published recipe."""
-        return objectives.training_loss(self, batch, recipe or TrainingRecipe())
+    # ---------------------------------------------------------------- the training loss
+    def forward(self, batch: MaskGITBatch, recipe: Optional[TrainingRecipe] = None) -> LossOutput:
+        """Factored CE and accuracy over the masked tokens of frames 1..T-1 of a collated batch (B, T, H, W), read
+        out at those tokens only (the (F*V)-wide logits of every other token are most of a small model's step;
+        genie/reference.py computes the same loss from every token's logits). In training mode a share
+        recipe.self_reveal_ratio of the examples first has part of its masked tokens filled with the model's own
+        guesses (`reveal_own_predictions`); recipe None: the published recipe (no self-reveal)."""
+        x_BTHW, labels_BTHW = batch.input_ids, batch.labels
+        self.check_tokens(x_BTHW)
+        B, T = x_BTHW.shape[:2]
+        cond_BTC = self.action_embeds(B, T, batch.actions, batch.latent_actions)
+        self_reveal_ratio = (recipe or TrainingRecipe()).self_reveal_ratio
+        if self.training and self_reveal_ratio > 0:
+            x_BTHW = self.reveal_own_predictions(x_BTHW, cond_BTC, self_reveal_ratio)
+        sources_BTSK = self.window_copy_sources(x_BTHW)
+        x_BTSC = self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
+        relevant_BTS = rearrange(x_BTHW == self.mask_token_id, "B T H W -> B T (H W)")
+        relevant_BTS[:, 0] = False  # frame 0 is always given
+        factored_NVF = self.readout(x_BTSC[relevant_BTS], None if sources_BTSK is None else sources_BTSK[relevant_BTS])
+        targets_N = rearrange(labels_BTHW, "B T H W -> B T (H W)")[relevant_BTS]
+        num_relevant = max(targets_N.numel(), 1)
+        return LossOutput(loss=factored_cross_entropy(factored_NVF, targets_N).sum() / num_relevant,
+                          acc=factored_argmax_correct(factored_NVF, targets_N).sum().float() / num_relevant)
+
+    @torch.no_grad()
+    def reveal_own_predictions(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
+                               ratio: float) -> torch.Tensor:
+        """Training inputs (B, T, H, W) as a later MaskGIT step sees them: for a share `ratio` of the examples, a
+        random share 1 - cos(pi/2 u), u ~ U(0, 1), of each frame's masked tokens is filled with the model's own
+        one-pass prediction (each factor's argmax; one extra pass without gradients).
+
+        At inference the tokens revealed after step 1 are the model's guesses (on the sample world ~11 % of them
+        right), not the ground truth that published masking reveals; a model trained only on ground truth trusts
+        them, and its second step gets worse than its first.
+        """
+        chosen_B = torch.rand(x_BTHW.shape[0], device=x_BTHW.device) < ratio
+        if not chosen_B.any():
+            return x_BTHW
+        x_bTHW = x_BTHW[chosen_B]  # a copy
+        masked_bTHW = x_bTHW == self.mask_token_id
+        masked_bTHW[:, 0] = False
+        masked_bTS = rearrange(masked_bTHW, "b T H W -> b T (H W)")
+        sources_bTSK = self.window_copy_sources(x_bTHW)
+        hidden_NC = self.hidden_states(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B],
+                                       sources_BTSK=sources_bTSK)[masked_bTS]
+        logits_NVF = self.readout(hidden_NC, None if sources_bTSK is None else sources_bTSK[masked_bTS])
+        guesses_N = unfactorize_token_ids(logits_NVF.float().argmax(dim=1), self.config.num_factored_vocabs,
+                                          self.config.factored_vocab_size)
+        # 1 - MaskGIT's cosine schedule (genie.sampling.cosine_schedule) at a uniform progress
+        share_bT11 = 1 - torch.cos(torch.rand(*masked_bTHW.shape[:2], 1, 1, device=x_BTHW.device) * math.pi / 2)
+        reveal_bTHW = masked_bTHW & (torch.rand(masked_bTHW.shape, device=x_BTHW.device) < share_bT11)
+        x_bTHW[masked_bTHW] = torch.where(reveal_bTHW[masked_bTHW], guesses_N, self.mask_token_id)
+        return x_BTHW.index_put((chosen_B,), x_bTHW)
 
     # ---------------------------------------------------------------- checkpoints (genie/checkpoint.py)
     def save_pretrained(self, save_directory: Union[str, Path], *, config=None, repo_id: Optional[str] = None,

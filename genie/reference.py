@@ -1,5 +1,5 @@
 """Reference computations without the KV cache or the masked readout: the straightforward (published) procedures
-that genie/inference.py and genie/objectives.py are tested against and benchmarks/bench_eval.py compares with, and
+that genie/inference.py and the loss of genie/model.py are tested against and benchmarks/bench_eval.py compares with, and
 the copy head's mixture written out densely (genie/copy_head.py is tested against it, benchmarks/bench_copy_head.py
 compares their speed).
 
@@ -16,13 +16,12 @@ from genie.factorization import factorize_token_ids
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import (check_teacher_forced, frame_slice, generation_inputs, sample_targets, stack_frames,
                              targets_to_frames)
-from genie.masking import MaskGITBatch
-from genie.objectives import LossOutput
+from genie.model import LossOutput, MaskGITBatch
 from genie.sampling import maskgit_sample
 
 
 def full_logits_loss(model, batch: MaskGITBatch) -> LossOutput:
-    """The masked-token loss of genie/objectives.py (without self-reveal) from the logits of every token."""
+    """`STMaskGIT.forward`'s loss (without self-reveal) from the logits of every token."""
     x_BTHW, labels_BTHW = batch.input_ids, batch.labels
     logits_BVFTHW = model.logits(x_BTHW, batch.actions, batch.latent_actions)[:, :, :, 1:]
     relevant_BTHW = x_BTHW[:, 1:] == model.mask_token_id  # frame 0 is always given

@@ -1,36 +1,37 @@
-"""Split a rollout's per-window scores by what the walker does in each window's future.
+"""Split a rollout's per-window scores by what the walker does in each window's future
+(`python -m genie.diagnostics breakdown`, genie/diagnostics.py).
 
-    ./evaluate.py --protocol rollout ... --per_window_out windows.jsonl
-    python -m genie.rollout_breakdown windows.jsonl --val_data_dir data/unseen2/val --stream driving_command --column 1
+    python -m genie.diagnostics per_window ... --per_window_out windows.jsonl
+    python -m genie.diagnostics breakdown windows.jsonl --val_data_dir data/unseen2/val --column 1
 
-Each window of `evaluate.py --per_window_out` is placed by one number: the mean absolute value of one action column
-over its generated frames (each row the mean over its window step, as the models with `action_step_mean` see it;
-column 1 of the sample world's driving_command is the turn rate, column 0 the forward speed). The windows are cut
-into --bins groups of equal size by that number, and each group's futures are compared with holding the last prompt
-frame per horizon: PSNR gain in dB (and LPIPS against holding's, when the file has LPIPS). A mean over all windows
-can hide a group of windows where the futures lose to holding; this shows which motion it is. The last stdout line
-is a JSON object: {"stream", "column", "groups": [{"low", "high", "num_windows", "psnr_gain", "psnr_gain_mean",
-"lpips_rollout", "lpips_hold"}, ...]}.
+Each window of a --per_window_out file is placed by one number: the mean absolute value of one action column over
+its generated frames (each row the mean over its window step, as the models with `action_step_mean` see it; column 1
+of the sample world's driving_command is the turn rate, column 0 the forward speed). The windows are cut into `bins`
+groups of equal size by that number, and each group's futures are compared with holding the last prompt frame per
+horizon: PSNR gain in dB (and LPIPS against holding's, when the file has LPIPS). A mean over all windows can hide a
+group of windows where the futures lose to holding; this shows which motion it is. `breakdown` returns
+{"stream", "column", "groups": [{"low", "high", "num_windows", "psnr_gain", "psnr_gain_mean", "lpips_rollout",
+"lpips_hold"}, ...]}.
 """
-import argparse
 import json
-import sys
 from pathlib import Path
 from typing import List
 
 import numpy as np
 
-from data import RawTokenDataset, TokenDatasetError
+from common.errors import InputError
+from data import RawTokenDataset
 
 
-class BreakdownError(ValueError):
+class BreakdownError(InputError):
     """A per-window file that does not match the dataset, or a stream / column that the dataset lacks."""
 
 
 def read_per_window(path) -> List[dict]:
     path = Path(path)
     if not path.is_file():
-        raise BreakdownError(f"{path}: no such file (write it with evaluate.py --protocol rollout --per_window_out)")
+        raise BreakdownError(f"{path}: no such file (write it with python -m genie.diagnostics per_window "
+                             f"--per_window_out)")
     lines = []
     for number, text in enumerate(path.read_text().splitlines(), start=1):
         try:
@@ -39,8 +40,8 @@ def read_per_window(path) -> List[dict]:
             raise BreakdownError(f"{path}, line {number}: not JSON ({e})") from None
         missing = {"window", "first_frame", "rollout_psnr", "hold_psnr"} - set(line)
         if missing:
-            raise BreakdownError(f"{path}, line {number}: lacks {sorted(missing)}; is it evaluate.py's "
-                                 f"--per_window_out?")
+            raise BreakdownError(f"{path}, line {number}: lacks {sorted(missing)}; is it a --per_window_out "
+                                 f"file of python -m genie.diagnostics?")
         lines.append(line)
     if not lines:
         raise BreakdownError(f"{path}: no windows")
@@ -59,7 +60,7 @@ def motion(lines: List[dict], dataset: RawTokenDataset, stream: str, column: int
         window, first_frame = line["window"], line["first_frame"]
         if not 0 <= window < len(dataset) or int(dataset.valid_start_inds[window]) != first_frame:
             raise BreakdownError(f"{where}: window {window} does not start at frame {first_frame} here; pass the "
-                                 f"--val_data_dir, --stride and --num_prompt_frames that evaluate.py used")
+                                 f"--val_data_dir, --stride and --num_prompt_frames of the run that wrote it")
         rows = dataset.get_window_actions(first_frame)[stream]
         values.append(float(np.abs(rows[num_prompt_frames:, column]).mean()))
     return np.array(values)
@@ -81,43 +82,25 @@ def groups(lines: List[dict], values: np.ndarray, bins: int) -> List[dict]:
     return result
 
 
-def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("per_window", help="The JSON Lines file of evaluate.py --per_window_out.")
-    parser.add_argument("--val_data_dir", required=True, help="The token dataset that evaluate.py scored.")
-    parser.add_argument("--stream", default="driving_command", help="Action stream that places each window.")
-    parser.add_argument("--column", type=int, default=1,
-                        help="Column of --stream (the sample world's driving_command: 0 forward speed, 1 turn rate).")
-    parser.add_argument("--bins", type=int, default=3, help="Groups of equal size to cut the windows into.")
-    parser.add_argument("--num_prompt_frames", type=int, default=8, help="evaluate.py's --num_prompt_frames.")
-    parser.add_argument("--stride", type=int, default=15, help="evaluate.py's --stride.")
-    args = parser.parse_args(argv)
-    if args.bins < 1 or args.num_prompt_frames < 1 or args.stride < 1:
-        parser.error("--bins, --num_prompt_frames and --stride must be >= 1")
-    return args
+def breakdown(per_window, val_data_dir, stream: str, column: int, bins: int, num_prompt_frames: int,
+              stride: int) -> dict:
+    """The windows of the --per_window_out file `per_window`, of the dataset `val_data_dir` read as the run that
+    wrote it read it (`stride`, `num_prompt_frames`), in `bins` groups by |stream[:, column]| (module doc)."""
+    lines = read_per_window(per_window)
+    window_size = num_prompt_frames + len(lines[0]["rollout_psnr"])
+    dataset = RawTokenDataset(val_data_dir, window_size=window_size, stride=stride, filter_overlaps=True,
+                              step_mean_streams=(stream,))
+    values = motion(lines, dataset, stream, column, num_prompt_frames, val_data_dir)
+    return {"stream": stream, "column": column, "groups": groups(lines, values, bins)}
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    try:
-        lines = read_per_window(args.per_window)
-        window_size = args.num_prompt_frames + len(lines[0]["rollout_psnr"])
-        dataset = RawTokenDataset(args.val_data_dir, window_size=window_size, stride=args.stride,
-                                  filter_overlaps=True, step_mean_streams=(args.stream,))
-        values = motion(lines, dataset, args.stream, args.column, args.num_prompt_frames, args.val_data_dir)
-    except (BreakdownError, TokenDatasetError, FileNotFoundError) as e:
-        print(f"rollout_breakdown: error: {e}", file=sys.stderr)
-        return 1
-    result = {"stream": args.stream, "column": args.column, "groups": groups(lines, values, args.bins)}
+def describe(result: dict) -> List[str]:
+    """One readable line per group of a `breakdown` result."""
+    lines = []
     for group in result["groups"]:
         lpips = ("" if group["lpips_rollout"] is None else
                  f"  LPIPS {group['lpips_rollout']:.3f} (hold {group['lpips_hold']:.3f})")
-        print(f"|{args.stream}[{args.column}]| {group['low']:.3g}-{group['high']:.3g}, {group['num_windows']} "
-              f"windows: {group['psnr_gain_mean']:+.2f} dB over holding, per horizon "
-              f"{' '.join(f'{v:+.2f}' for v in group['psnr_gain'])}{lpips}", file=sys.stderr)
-    print(json.dumps(result))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        lines.append(f"|{result['stream']}[{result['column']}]| {group['low']:.3g}-{group['high']:.3g}, "
+                     f"{group['num_windows']} windows: {group['psnr_gain_mean']:+.2f} dB over holding, per horizon "
+                     f"{' '.join(f'{v:+.2f}' for v in group['psnr_gain'])}{lpips}")
+    return lines

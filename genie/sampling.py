@@ -1,49 +1,38 @@
-"""MaskGIT decoding of one frame of tokens with factored logits (docs/formats.md §5), batched over frames.
+"""MaskGIT decoding of one frame of tokens with factored logits (docs/formats.md §5), batched over frames, and the
+mask schedule it shares with the training collator.
 
 Differences from the published sampler, on purpose: the temperature divides the logits (the published code
 divides the probabilities, which Categorical renormalizes, so its temperature had no effect), and tokens given in
 the input frame are never changed.
 """
-from typing import Callable, NamedTuple, Optional, Tuple, Union
+import math
+from typing import Callable, Optional, Tuple, Union
 
 import torch
 from einops import rearrange
 
+from genie.copy_head import Prediction
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
-from genie.schedule import num_masked_after_step
 
 UNMASK_MODES = ("random", "greedy")
 GREEDY_TEMPERATURE = 1e-8  # at or below this temperature, sampling is argmax
 
 
-class Prediction(NamedTuple):
-    """A model's prediction at some positions: factored logits (..., V, F) (log-probabilities for a model with a
-    copy head) and, for a copy head's mixture (genie/copy_head.py), what decodes it as whole tokens:
-
-    - mode_ids, mode_probs (...): its most probable whole tokens and their probabilities (`CopyHead.mode`), which
-      greedy steps take instead of the factor-wise argmax of the logits;
-    - copy_log_weights (..., K + 1), copy_sources (..., K), readout_logits (..., V, F): its parts (log weights of
-      the K previous-frame neighbours and, last, of a new token; the neighbours' token ids; the readout's logits),
-      from which sampling steps draw whole tokens (`sample_mixture_tokens`) instead of each factor on its own.
-
-    Layouts: `logits` and `readout_logits` share one (e.g. (B, V, F, H, W) for frames), the others put the
-    positions first and their own axis last (e.g. (B, H, W) and (B, H, W, K))."""
-    logits: torch.Tensor
-    mode_ids: Optional[torch.Tensor] = None
-    mode_probs: Optional[torch.Tensor] = None
-    copy_log_weights: Optional[torch.Tensor] = None
-    copy_sources: Optional[torch.Tensor] = None
-    readout_logits: Optional[torch.Tensor] = None
-
-    def map(self, logits_fn: Callable[[torch.Tensor], torch.Tensor],
-            positions_fn: Callable[[torch.Tensor], torch.Tensor]) -> "Prediction":
-        """A `Prediction` with logits_fn applied to the fields in the logits' layout and positions_fn to the
-        others (None fields stay None)."""
-        return Prediction(*(None if v is None else (logits_fn if name in LOGITS_LAYOUT else positions_fn)(v)
-                            for name, v in zip(self._fields, self)))
+def cosine_schedule(u):
+    """Fraction of tokens left masked at progress u in [0, 1]: cos(pi/2 * u) (1 at u=0, 0 at u=1)."""
+    if isinstance(u, torch.Tensor):
+        return torch.cos(u * math.pi / 2)
+    return math.cos(u * math.pi / 2)
 
 
-LOGITS_LAYOUT = ("logits", "readout_logits")
+def num_masked_after_step(step: int, num_steps: int, num_tokens: int) -> int:
+    """Tokens that stay masked after MaskGIT step `step` (0-based) of `num_steps`: ceil(cos(pi/2 (s+1)/n) * S).
+
+    The last step leaves none masked.
+    """
+    if step + 1 >= num_steps:  # cos(pi/2) * S is 1e-14, not 0: the last step always reveals everything
+        return 0
+    return math.ceil(cosine_schedule((step + 1) / num_steps) * num_tokens)
 
 
 def sample_factored_tokens(logits_BVFS: torch.Tensor, temperature: float = 0.0,
@@ -130,7 +119,7 @@ def maskgit_sample(logits_fn: Callable[[torch.Tensor], Union[torch.Tensor, Predi
     probabilities as confidences) instead of the factor-wise argmax, and / or with a copy head's mixture parts,
     from which steps at a temperature then draw whole tokens (`sample_mixture_tokens`).
     frame_BHW: the starting frames; tokens other than mask_token_id are given and are never changed.
-    After step s (of n), ceil(cos(pi/2 (s+1)/n) * S) tokens stay masked (genie.schedule); the last step reveals
+    After step s (of n), ceil(cos(pi/2 (s+1)/n) * S) tokens stay masked (`num_masked_after_step`); the last step reveals
     all. Which masked tokens are revealed: "random" (the published default) or "greedy" (most confident first).
     Random numbers are drawn in a fixed order (token samples, then the reveal order, each step), so two callers
     whose logits_fn agree draw the same samples from the same generator.

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from common.errors import InputError
 from lam.model import LAM, frames_to_tensor
 
 FRAMES_KEY = "frames"
@@ -21,7 +22,7 @@ def load_frames_npz(path, require_buttons: bool = False) -> dict:
     """Read a raw-frame .npz (the sample world's format) and check it.
 
     Returns frames (N, H, W, C) uint8, segment_ids (N,) int64, buttons (N, k) float32 or None, button_names (k
-    strings) or None. Errors name the file and what is wrong.
+    strings) or None. Errors (FileNotFoundError, InputError) name the file and what is wrong.
     """
     path = Path(path)
     if not path.is_file():
@@ -29,26 +30,26 @@ def load_frames_npz(path, require_buttons: bool = False) -> dict:
     try:
         npz = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as e:
-        raise ValueError(f"{path}: not a readable .npz file ({e})") from None
+        raise InputError(f"{path}: not a readable .npz file ({e})") from None
     with npz:
         missing = [k for k in (FRAMES_KEY, SEGMENTS_KEY) + ((BUTTONS_KEY,) if require_buttons else ()) if k not in npz]
         if missing:
-            raise KeyError(f"{path}: missing array(s) {missing}; it has {sorted(npz.files)}")
+            raise InputError(f"{path}: missing array(s) {missing}; it has {sorted(npz.files)}")
         frames = npz[FRAMES_KEY]
         segment_ids = npz[SEGMENTS_KEY]
         buttons = npz[BUTTONS_KEY] if BUTTONS_KEY in npz else None
         names = [str(n) for n in npz[BUTTON_NAMES_KEY]] if BUTTON_NAMES_KEY in npz else None
     if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] not in (1, 3):
-        raise ValueError(f"{path}: '{FRAMES_KEY}' must be uint8 (N, H, W, 1 or 3), got {frames.dtype} {frames.shape}")
+        raise InputError(f"{path}: '{FRAMES_KEY}' must be uint8 (N, H, W, 1 or 3), got {frames.dtype} {frames.shape}")
     n = len(frames)
     if segment_ids.shape != (n,) or not np.issubdtype(segment_ids.dtype, np.integer):
-        raise ValueError(f"{path}: '{SEGMENTS_KEY}' must be integers of shape ({n},), got {segment_ids.dtype} "
+        raise InputError(f"{path}: '{SEGMENTS_KEY}' must be integers of shape ({n},), got {segment_ids.dtype} "
                          f"{segment_ids.shape}")
     if buttons is not None:
         if buttons.ndim != 2 or len(buttons) != n:
-            raise ValueError(f"{path}: '{BUTTONS_KEY}' must have shape ({n}, k), got {buttons.shape}")
+            raise InputError(f"{path}: '{BUTTONS_KEY}' must have shape ({n}, k), got {buttons.shape}")
         if names is not None and len(names) != buttons.shape[1]:
-            raise ValueError(f"{path}: {len(names)} button names for {buttons.shape[1]} button columns")
+            raise InputError(f"{path}: {len(names)} button names for {buttons.shape[1]} button columns")
         buttons = buttons.astype(np.float32)
     return {"frames": frames, "segment_ids": segment_ids.astype(np.int64), "buttons": buttons,
             "button_names": names}

@@ -18,14 +18,16 @@ latent_action_num_past_frames, the fallback counts and the code histogram; metad
 import argparse
 import json
 import logging
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, setup_logging
+from common.cli import (add_device_arg, add_num_threads_arg, apply_cpu_settings, positive_int, resolve_device,
+                        run_main, setup_logging)
 from common.config import load_json
-from common.errors import WriteError, input_error_exit
+from common.errors import DataMismatchError
 from common.files import atomic_file
 from common.integrity import read_manifest, update_manifest
 from lam.data import infer_codes, load_frames_npz, valid_targets
@@ -42,7 +44,7 @@ def parse_args(argv=None):
                    help="raw frames .npz (frames (N,H,W,3) uint8, segment_ids (N,)) the token dataset was built from")
     p.add_argument("--token_dir", required=True,
                    help="token dataset directory (metadata.json, segment_ids.bin) to add actions/latent_action.bin to")
-    p.add_argument("--batch_size", type=int, default=256, help="transitions per LAM batch")
+    p.add_argument("--batch_size", type=positive_int, default=256, help="transitions per LAM batch")
     add_device_arg(p)
     add_num_threads_arg(p)
     return p.parse_args(argv)
@@ -53,17 +55,19 @@ def check_token_dir(token_dir: Path, segment_ids: np.ndarray, frames_path) -> No
     meta = load_json(token_dir / "metadata.json", "token dataset metadata")
     n = len(segment_ids)
     if meta.get("num_images") != n:
-        raise ValueError(f"{token_dir / 'metadata.json'}: num_images {meta.get('num_images')} but {frames_path} has "
-                         f"{n} frames; the token dataset must be built from the same frames in the same order")
+        raise DataMismatchError(f"{token_dir / 'metadata.json'}: num_images {meta.get('num_images')} but {frames_path} "
+                                f"has {n} frames; the token dataset must be built from the same frames in the same "
+                                f"order")
     seg_path = token_dir / "segment_ids.bin"
     if not seg_path.is_file():
         return
     if seg_path.stat().st_size != 4 * n:
-        raise ValueError(f"{seg_path}: {seg_path.stat().st_size} bytes, expected {4 * n} (int32 x {n} frames)")
+        raise DataMismatchError(f"{seg_path}: {seg_path.stat().st_size} bytes, expected {4 * n} (int32 x {n} "
+                                f"frames)")
     token_segments = np.fromfile(seg_path, dtype=np.int32)
     if not np.array_equal(np.diff(token_segments) != 0, np.diff(segment_ids) != 0):
-        raise ValueError(f"{seg_path}: segment boundaries differ from those of {frames_path}; the token dataset "
-                         f"must be built from the same frames in the same order")
+        raise DataMismatchError(f"{seg_path}: segment boundaries differ from those of {frames_path}; the token "
+                                f"dataset must be built from the same frames in the same order")
 
 
 def fill_codes(segment_ids: np.ndarray, targets: np.ndarray, codes: np.ndarray,
@@ -94,8 +98,8 @@ def label(args) -> dict:
     data = load_frames_npz(args.frames)
     frame_shape = (cfg.image_size, cfg.image_size, cfg.image_channels)
     if data["frames"].shape[1:] != frame_shape:
-        raise ValueError(f"{args.frames}: frames are {data['frames'].shape[1:]}, the LAM in {args.lam_dir} "
-                         f"expects {frame_shape}")
+        raise DataMismatchError(f"{args.frames}: frames are {data['frames'].shape[1:]}, the LAM in {args.lam_dir} "
+                                f"expects {frame_shape}")
     token_dir = Path(args.token_dir)
     check_token_dir(token_dir, data["segment_ids"], args.frames)
 
@@ -129,15 +133,10 @@ def label(args) -> dict:
 def main(argv=None):
     setup_logging()
     args = parse_args(argv)
-    try:
-        sidecar = label(args)
-    except WriteError as e:  # full disk / I/O error: one line instead of a traceback
-        raise SystemExit(f"error: {e}") from None
-    except (OSError, KeyError, ValueError) as e:  # bad or missing inputs: the message names the file
-        raise input_error_exit("lam.label", e) from None
+    sidecar = label(args)
     logger.info("wrote %s/actions/%s.bin: %s", args.token_dir, ACTION_NAME,
                 {k: v for k, v in sidecar.items() if k.startswith("num")})
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("lam.label", main))

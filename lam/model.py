@@ -31,6 +31,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from common.config import ConfigError, dataclass_from_dict, load_json
+from common.errors import CheckpointError
 from common.files import atomic_file
 from common.integrity import update_manifest, verify_manifest
 
@@ -475,7 +476,7 @@ class LAM(nn.Module):
         load_dir = Path(load_dir)
         if not load_dir.is_dir():
             raise FileNotFoundError(f"LAM checkpoint directory not found: {load_dir}")
-        verify_manifest(load_dir, [WEIGHTS_NAME])  # IntegrityError (a ValueError) naming corrupt weights
+        verify_manifest(load_dir, [WEIGHTS_NAME])  # IntegrityError (a CheckpointError) naming corrupt weights
         config = LAMConfig.from_dict(load_json(load_dir / CONFIG_NAME, "LAM config"), str(load_dir / CONFIG_NAME))
         weights_path = load_dir / WEIGHTS_NAME
         if not weights_path.is_file():
@@ -483,14 +484,14 @@ class LAM(nn.Module):
         try:
             state = load_file(str(weights_path))
         except (SafetensorError, OSError) as e:
-            raise ValueError(f"{weights_path}: not a readable safetensors file ({e})") from None
+            raise CheckpointError(f"{weights_path}: not a readable safetensors file ({e})") from None
         model = cls(config)
         expected = model.state_dict()
         missing = sorted(set(expected) - set(state))
         unexpected = sorted(set(state) - set(expected))
         wrong = sorted(k for k in set(expected) & set(state) if expected[k].shape != state[k].shape)
         if missing or unexpected or wrong:
-            raise ValueError(f"{weights_path} does not match {load_dir / CONFIG_NAME}: missing {missing[:5]}, "
+            raise CheckpointError(f"{weights_path} does not match {load_dir / CONFIG_NAME}: missing {missing[:5]}, "
                              f"unexpected {unexpected[:5]}, wrong shape {wrong[:5]}")
         model.load_state_dict(state)
         return model.to(device)

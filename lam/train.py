@@ -17,6 +17,7 @@ import argparse
 import json
 import logging
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -25,9 +26,9 @@ import torch
 from tqdm import tqdm
 
 from common.cli import (add_device_arg, add_num_threads_arg, apply_cpu_settings, check_optimizer_args, finite_float,
-                        resolve_device, setup_logging)
+                        non_negative_int, positive_int, resolve_device, run_main, setup_logging)
 from common.config import load_json
-from common.errors import WriteError, input_error_exit
+from common.errors import DataMismatchError, InputError
 from common.files import write_json_atomic
 from common.images import psnr
 from common.schedules import lr_multiplier
@@ -39,6 +40,17 @@ logger = logging.getLogger("train_lam")
 FRAME_RANGE = (-1.0, 1.0)  # the LAM's frames and decoder outputs
 
 
+def int_list(text: str) -> list:
+    """argparse type of --channels: comma-separated positive integers, e.g. 16,32,64."""
+    try:
+        values = [int(c) for c in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected comma-separated positive integers such as 16,32,64, got {text!r}")
+    return values
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--train_data", default="data/sample/raw/train.npz",
@@ -47,26 +59,30 @@ def parse_args(argv=None):
     p.add_argument("--output_dir", default="data/lam", help="where the LAM, its checkpoint and metrics.json go")
     p.add_argument("--lam_config", default=None,
                    help="LAMConfig JSON file; the flags below that are given explicitly override its fields")
-    p.add_argument("--stride", type=int, default=None,
+    p.add_argument("--stride", type=positive_int, default=None,
                    help="raw frames between the frames a latent action connects (default 15, the dynamics "
                         "model's frame stride)")
-    p.add_argument("--num_past_frames", type=int, default=None, help="context frames before the target (default 1)")
-    p.add_argument("--codebook_size", type=int, default=None, help="number of latent actions (default 8)")
-    p.add_argument("--latent_dim", type=int, default=None, help="width of the latent action vectors (default 32)")
-    p.add_argument("--channels", default=None, help="comma-separated conv widths per level (default 16,32,64)")
-    p.add_argument("--max_train_steps", type=int, default=1200, help="optimizer steps")
-    p.add_argument("--batch_size", type=int, default=32, help="transitions per step")
+    p.add_argument("--num_past_frames", type=positive_int, default=None,
+                   help="context frames before the target (default 1)")
+    p.add_argument("--codebook_size", type=positive_int, default=None, help="number of latent actions (default 8)")
+    p.add_argument("--latent_dim", type=positive_int, default=None,
+                   help="width of the latent action vectors (default 32)")
+    p.add_argument("--channels", type=int_list, default=None,
+                   help="comma-separated conv widths per level (default 16,32,64)")
+    p.add_argument("--max_train_steps", type=positive_int, default=1200, help="optimizer steps")
+    p.add_argument("--batch_size", type=positive_int, default=32, help="transitions per step")
     p.add_argument("--learning_rate", type=finite_float, default=1e-3, help="peak AdamW learning rate")
     p.add_argument("--weight_decay", type=finite_float, default=0.0, help="AdamW weight decay")
-    p.add_argument("--warmup_steps", type=int, default=50, help="linear warm-up steps; cosine decay to 10%% after")
+    p.add_argument("--warmup_steps", type=non_negative_int, default=50,
+                   help="linear warm-up steps; cosine decay to 10%% after")
     p.add_argument("--max_grad_norm", type=finite_float, default=1.0, help="gradient clipping norm")
-    p.add_argument("--checkpointing_steps", type=int, default=200,
+    p.add_argument("--checkpointing_steps", type=non_negative_int, default=200,
                    help="save the model to OUTPUT_DIR/checkpoint every this many steps (0: never)")
-    p.add_argument("--max_eval_examples", type=int, default=2048,
+    p.add_argument("--max_eval_examples", type=non_negative_int, default=2048,
                    help="validation transitions to evaluate (evenly spaced over the file; 0: all)")
-    p.add_argument("--max_probe_train_examples", type=int, default=8192,
+    p.add_argument("--max_probe_train_examples", type=non_negative_int, default=8192,
                    help="training transitions used to fit the action probe (random subset; 0: all)")
-    p.add_argument("--eval_batch_size", type=int, default=128, help="transitions per evaluation batch")
+    p.add_argument("--eval_batch_size", type=positive_int, default=128, help="transitions per evaluation batch")
     p.add_argument("--seed", type=int, default=0, help="seed of initialisation, batch sampling and random actions")
     add_device_arg(p)
     add_num_threads_arg(p)
@@ -79,11 +95,11 @@ def build_config(args, frames_NHWC: np.ndarray) -> LAMConfig:
     base = load_json(args.lam_config, "LAM config") if args.lam_config else {}
     overrides = {"stride": args.stride, "num_past_frames": args.num_past_frames,
                  "codebook_size": args.codebook_size, "latent_dim": args.latent_dim,
-                 "channels": [int(c) for c in args.channels.split(",")] if args.channels else None}
+                 "channels": args.channels}
     d = {**base, **{k: v for k, v in overrides.items() if v is not None}}
     d["image_size"], d["image_channels"] = frames_NHWC.shape[1], frames_NHWC.shape[3]
     if frames_NHWC.shape[1] != frames_NHWC.shape[2]:
-        raise ValueError(f"{args.train_data}: frames must be square, got {frames_NHWC.shape[1:3]}")
+        raise InputError(f"{args.train_data}: frames must be square, got {frames_NHWC.shape[1:3]}")
     return LAMConfig.from_dict(d, source=args.lam_config or "train_lam flags")
 
 
@@ -145,15 +161,15 @@ def train(args) -> dict:
     val_data = load_frames_npz(args.val_data)
     cfg = build_config(args, train_data["frames"])
     if val_data["frames"].shape[1:] != train_data["frames"].shape[1:]:
-        raise ValueError(f"{args.val_data}: frames {val_data['frames'].shape[1:]} differ from {args.train_data}: "
-                         f"{train_data['frames'].shape[1:]}")
+        raise DataMismatchError(f"{args.val_data}: frames {val_data['frames'].shape[1:]} differ from "
+                                f"{args.train_data}: {train_data['frames'].shape[1:]}")
     gap = cfg.stride * cfg.num_past_frames
     train_targets = valid_targets(train_data["segment_ids"], gap)
     val_targets = valid_targets(val_data["segment_ids"], gap)
     for path, targets in ((args.train_data, train_targets), (args.val_data, val_targets)):
         if len(targets) == 0:
-            raise ValueError(f"{path}: no segment is longer than {gap} frames (stride {cfg.stride} x "
-                             f"{cfg.num_past_frames} past frames), so there is no transition to learn from")
+            raise DataMismatchError(f"{path}: no segment is longer than {gap} frames (stride {cfg.stride} x "
+                                    f"{cfg.num_past_frames} past frames), so there is no transition to learn from")
     train_frames = torch.from_numpy(train_data["frames"])
     val_frames = torch.from_numpy(val_data["frames"])
     logger.info("%d train / %d val transitions, config %s", len(train_targets), len(val_targets), cfg.to_dict())
@@ -205,14 +221,8 @@ def train(args) -> dict:
 
 def main(argv=None):
     setup_logging()
-    try:
-        metrics = train(parse_args(argv))
-    except WriteError as e:  # full disk / I/O error: one line instead of a traceback
-        raise SystemExit(f"error: {e}") from None
-    except (OSError, KeyError, ValueError) as e:  # bad or missing inputs: the message names the file
-        raise input_error_exit("lam.train", e) from None
-    print(json.dumps(metrics))
+    print(json.dumps(train(parse_args(argv))))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("lam.train", main))

@@ -17,11 +17,10 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
-from common.cli import add_device_arg, add_hidden_alias, add_num_threads_arg, apply_cpu_settings, resolve_device
-from data.sample_world import (MAP_NAMES_HELP, TRAIN_MAPS, VAL_MAPS, WorldConfig, build_sample_world, mirror_split,
-                               save_split)
+from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_cpu_settings, finite_float,
+                        non_negative_int, positive_int, resolve_device, run_main)
+from common.errors import TrainingError
+from data.sample_world import MAP_NAMES_HELP, TRAIN_MAPS, VAL_MAPS, WorldConfig, build_sample_world, map_name
 from magvit2.model import VQModel
 from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 
@@ -43,7 +42,9 @@ def train_tokenizer(raw_dir: Path, output_dir: Path, extra_args=()) -> Path:
     cmd = [sys.executable, "-m", "magvit2.train", "--train_data", str(raw_dir / "train.npz"),
            "--val_data", str(raw_dir / "val.npz"), "--output_dir", str(output_dir), *TOKENIZER_RECIPE, *extra_args]
     print("training the sample-world tokenizer:", " ".join(cmd))
-    subprocess.run(cmd, check=True)
+    code = subprocess.run(cmd).returncode
+    if code != 0:
+        raise TrainingError(f"training the tokenizer failed (magvit2.train exit status {code}; its message is above)")
     return final
 
 
@@ -58,25 +59,15 @@ def resolve_tokenizer(path: str) -> Path:
 
 
 def split_stamp(raw_npzs: list, tokenizer_dir: Path) -> dict:
-    """What a token dataset was built from: the raw frames (path, mtime; a second file is the mirrored copy) and the
-    tokenizer weights (content hash, so a fresh checkout of the same weights is recognised while new weights are
-    not)."""
+    """What a token dataset was built from: the raw frames (path, mtime; the files after the first, in order, under
+    "more_raw") and the tokenizer weights (content hash, so a fresh checkout of the same weights is recognised while
+    new weights are not)."""
     digest = hashlib.sha256((tokenizer_dir / "model.safetensors").read_bytes()).hexdigest()
     first, *more = raw_npzs
     stamp = {"raw": str(first), "raw_mtime": first.stat().st_mtime, "tokenizer_sha256": digest}
     if more:
         stamp["more_raw"] = [[str(p), p.stat().st_mtime] for p in more]
     return stamp
-
-
-def write_mirror(raw_npz: Path, mirror_npz: Path, overwrite: bool) -> None:
-    """raw_npz's walks mirrored left-right (data.sample_world.mirror_split) -> mirror_npz, unless it is newer."""
-    if not overwrite and mirror_npz.exists() and mirror_npz.stat().st_mtime >= raw_npz.stat().st_mtime:
-        print(f"{mirror_npz}: mirrored walks up to date; skipping")
-        return
-    with np.load(raw_npz, allow_pickle=False) as npz:
-        save_split(mirror_npz, mirror_split({key: npz[key] for key in npz.files}))
-    print(f"{mirror_npz}: the training walks mirrored")
 
 
 def tokenize_split(raw_npzs: list, out_dir: Path, tokenizer_dir: Path, tokenizer_ref: str, batch_size: int,
@@ -100,27 +91,24 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--output_dir", default="data/sample", help="root of the sample world (raw/, train/, val/)")
     add_hidden_alias(p, "--out_dir", "output_dir")  # the spelling before train.py's was adopted
-    p.add_argument("--seed", type=int, default=0, help="seed of the episode generator")
-    p.add_argument("--train_episodes", type=int, default=2,
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the episode generator")
+    p.add_argument("--train_episodes", type=positive_int, default=2,
                    help="episodes per training map (16 maps by default); validation gets 1 held-out episode on each "
                         "of --val_maps")
-    p.add_argument("--train_maps", nargs="+", default=list(TRAIN_MAPS),
+    p.add_argument("--train_maps", nargs="+", type=map_name, default=list(TRAIN_MAPS),
                    help=f"maps for training: {MAP_NAMES_HELP}")
-    p.add_argument("--val_maps", nargs="+", default=list(VAL_MAPS),
+    p.add_argument("--val_maps", nargs="+", type=map_name, default=list(VAL_MAPS),
                    help="maps of the held-out validation episodes (default: the first 8 training maps and MAP18, "
                         "which is never trained on)")
-    p.add_argument("--episode_len", type=int, default=1500, help="frames (35 Hz tics) per episode")
+    p.add_argument("--episode_len", type=positive_int, default=1500, help="frames (35 Hz tics) per episode")
     p.add_argument("--train_episode_len", type=int, default=None,
                    help="frames per training episode, if not --episode_len; the validation split keeps "
                         "--episode_len (e.g. 48 maps x 1 walk of 1000 frames, about the default's training frames, "
                         "with the default's validation split byte for byte)")
-    p.add_argument("--turn_speed", type=float, default=WorldConfig.turn_speed,
+    p.add_argument("--turn_speed", type=finite_float, default=WorldConfig.turn_speed,
                    help="degrees the walker turns per tic while a turn button is held (default %(default)s: 13 "
                         "degrees per 15-tic window step; 1.75 was the default before, 26 degrees); lower makes a "
                         "world whose view moves less per step")
-    p.add_argument("--walk_speed", type=float, default=WorldConfig.walk_speed,
-                   help="forward/backward input while a move button is held (default %(default)s, half of Doom's "
-                        "walk: up to ~62 map units per 15-tic window step); lower makes a slower walker")
     p.add_argument("--tokenizer_ckpt", default=SHIPPED_TOKENIZER,
                    help="tokenizer checkpoint directory used to encode the frames (default: the shipped one)")
     add_hidden_alias(p, "--tokenizer", "tokenizer_ckpt")
@@ -130,20 +118,15 @@ def parse_args(argv=None):
     p.add_argument("--workers", type=int, default=2,
                    help="processes rendering episodes in parallel (each runs one ViZDoom engine; the frames do not "
                         "depend on it)")
-    p.add_argument("--mirror", action="store_true",
-                   help="also train on every training walk seen in a mirror (frames flipped left-right, left and "
-                        "right turns swapped): twice the training frames from the same renders (raw/train_mirror.npz); "
-                        "the validation split is unchanged; at the main command's budget it did not improve the futures")
-    p.add_argument("--batch_size", type=int, default=8,
+    p.add_argument("--batch_size", type=positive_int, default=8,
                    help="frames per encoder batch when tokenizing (small batches stay in the CPU's caches: 8 encodes "
                         "the 64x64 frames 1.5x faster than 256 on 2 cores, with the same tokens)")
     add_device_arg(p)
     add_num_threads_arg(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild every step even if outputs exist")
     args = p.parse_args(argv)
-    for name in ("turn_speed", "walk_speed"):
-        if not getattr(args, name) > 0:
-            p.error(f"--{name} must be > 0, got {getattr(args, name)}")
+    if not args.turn_speed > 0:
+        p.error(f"--turn_speed must be > 0, got {args.turn_speed}")
     if args.workers < 1:
         p.error(f"--workers must be >= 1, got {args.workers}")
     if args.train_episode_len is not None and args.train_episode_len < 1:
@@ -160,21 +143,17 @@ def main(argv=None):
                        train_episodes=args.train_episodes, val_episodes=1, episode_len=args.episode_len,
                        train_episode_len=args.train_episode_len,
                        workers=args.workers, overwrite=args.overwrite,
-                       cfg=WorldConfig(turn_speed=args.turn_speed, walk_speed=args.walk_speed))
+                       cfg=WorldConfig(turn_speed=args.turn_speed))
     if args.train_tokenizer:
         tokenizer_dir = train_tokenizer(raw, out / "tokenizer")
         tokenizer_ref = str(tokenizer_dir)
     else:
         tokenizer_dir = resolve_tokenizer(args.tokenizer_ckpt)
         tokenizer_ref = args.tokenizer_ckpt
-    inputs = {"train": [raw / "train.npz"], "val": [raw / "val.npz"]}
-    if args.mirror:
-        write_mirror(raw / "train.npz", raw / "train_mirror.npz", args.overwrite)
-        inputs["train"].append(raw / "train_mirror.npz")
     for split in ("train", "val"):
-        tokenize_split(inputs[split], out / split, tokenizer_dir, tokenizer_ref, args.batch_size,
+        tokenize_split([raw / f"{split}.npz"], out / split, tokenizer_dir, tokenizer_ref, args.batch_size,
                        resolve_device(args.device), args.overwrite)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("magvit2.build_sample", main))

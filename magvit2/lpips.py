@@ -23,6 +23,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from safetensors.torch import load_file
 
+from common.errors import InputError
+
 ENV_VAR = "GENIE_LPIPS_WEIGHTS"
 CACHE_SUBPATH = Path("genie_world_model") / "lpips_alexnet_v0.1.safetensors"
 HUB_ALEXNET_FILE = "alexnet-owt-7be5be79.pth"
@@ -41,6 +43,10 @@ MIN_SIDE = 32  # smaller inputs vanish in AlexNet's stride-4 conv and two 3x3/2 
 
 class LPIPSWeightsNotFound(FileNotFoundError):
     """No LPIPS weights in any of the places `resolve_lpips_weights` looks."""
+
+
+class LPIPSWeightsError(InputError):
+    """A weights file that is unreadable or does not hold the LPIPS AlexNet v0.1 weights; the message names it."""
 
 
 def converted_weights_path() -> Path:
@@ -91,7 +97,7 @@ def _load_pickle(path: Path, what: str) -> dict:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unreadable file gets the same clear message
-        raise ValueError(f"{path}: cannot read {what} ({type(e).__name__}: {e})") from None
+        raise LPIPSWeightsError(f"{path}: cannot read {what} ({type(e).__name__}: {e})") from None
 
 
 def _load_converted(path: Path) -> dict:
@@ -100,8 +106,8 @@ def _load_converted(path: Path) -> dict:
     try:
         return load_file(str(path))
     except Exception as e:  # noqa: BLE001
-        raise ValueError(f"{path}: not a readable safetensors file ({type(e).__name__}: {e}); "
-                         f"recreate it with `{CONVERT_COMMAND} --out {path}`") from None
+        raise LPIPSWeightsError(f"{path}: not a readable safetensors file ({type(e).__name__}: {e}); "
+                                f"recreate it with `{CONVERT_COMMAND} --out {path}`") from None
 
 
 def _load_hub_and_wheel(alexnet_path: Path, heads_path: Path) -> dict:
@@ -111,7 +117,7 @@ def _load_hub_and_wheel(alexnet_path: Path, heads_path: Path) -> dict:
     for i in range(len(CHANNELS)):
         key = f"lin{i}.model.1.weight"  # the lpips package's NetLinLayer: Sequential(Dropout, Conv2d)
         if key not in heads:
-            raise ValueError(f"{heads_path}: missing {key!r}; not the lpips v0.1 AlexNet heads file")
+            raise LPIPSWeightsError(f"{heads_path}: missing {key!r}; not the lpips v0.1 AlexNet heads file")
         state[f"lins.{i}.weight"] = heads[key]
     return state
 
@@ -185,8 +191,8 @@ class LPIPS(nn.Module):
             missing = sorted(set(expected) - set(got))
             unexpected = sorted(set(got) - set(expected))
             wrong = sorted(k for k in set(expected) & set(got) if expected[k] != got[k])
-            raise ValueError(f"LPIPS weights from {source or 'the resolved source'} do not fit: missing {missing}, "
-                             f"unexpected {unexpected}, wrong shape {wrong}")
+            raise LPIPSWeightsError(f"LPIPS weights from {source or 'the resolved source'} do not fit: missing "
+                                    f"{missing}, unexpected {unexpected}, wrong shape {wrong}")
         self.load_state_dict({k: v.float() for k, v in state.items()})
 
     def train(self, mode: bool = True) -> "LPIPS":

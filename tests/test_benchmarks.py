@@ -30,7 +30,7 @@ def test_benchmark_scripts_start_from_any_directory(script, tmp_path):
 
 
 def test_bench_train_compare_runs_fp32_and_both_bf16_attention_paths(capsys):
-    from genie.attention import SelfAttention
+    from genie.transformer import SelfAttention
     load("bench_train").main([*TINY_TRAIN_STEP, "--mixed_precision", "compare"])
     out = capsys.readouterr().out
     assert "fp32:" in out and "bf16 (fused attention):" in out and "bf16 (written-out temporal attention):" in out
@@ -92,20 +92,20 @@ def test_bench_train_takes_a_genie_config_with_a_copy_head(tmp_path, capsys):
 
 
 def test_bench_train_runs_an_action_config_under_its_training_recipe(tmp_path, capsys, monkeypatch):
-    from genie import objectives
+    from genie.model import STMaskGIT
     config = {"num_layers": 1, "num_heads": 2, "d_model": 32, "T": 4, "S": 16, "image_vocab_size": 4096,
               "num_prompt_frames": 2, "copy_radius": 1, "copy_match_input": True, "self_reveal_ratio": 1.0,
               "action_names": ["buttons", "driving_command"], "action_dim": 5, "num_latent_actions": 3}
     (tmp_path / "config.json").write_text(json.dumps(config))
     ratios = []
-    real_masked_loss = objectives.masked_loss
-    monkeypatch.setattr(objectives, "masked_loss", lambda model, batch, *a: ratios.append(a) or real_masked_loss(
-        model, batch, *a))
+    real_reveal = STMaskGIT.reveal_own_predictions
+    monkeypatch.setattr(STMaskGIT, "reveal_own_predictions", lambda model, x, cond, ratio: ratios.append(ratio) or
+                        real_reveal(model, x, cond, ratio))
     bench = load("bench_train")
     bench.main(["--genie_config", str(tmp_path / "config.json"), "--steps", "1", "--warmup_steps", "0"])
     assert "fp32:" in capsys.readouterr().out
-    assert ratios and all(r[0] == 1.0 for r in ratios)  # the config's self_reveal_ratio, as train.py uses it
+    assert ratios and all(r == 1.0 for r in ratios)  # the config's self_reveal_ratio, as train.py uses it
     ratios.clear()
     bench.main(["--genie_config", str(tmp_path / "config.json"), "--steps", "1", "--warmup_steps", "0",
                 "--recipe", "published"])
-    assert ratios and all(r[0] == 0.0 for r in ratios)
+    assert not ratios  # the published recipe reveals nothing

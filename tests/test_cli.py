@@ -5,7 +5,7 @@ import importlib
 import pytest
 import torch
 
-from common.cli import add_device_arg, add_hidden_alias, cpu_has_native_bf16, resolve_device
+from common.cli import add_device_arg, add_hidden_alias, cpu_has_native_bf16, resolve_device, run_main
 from magvit2 import build_sample
 from magvit2 import train as magvit2_train
 
@@ -121,10 +121,11 @@ def test_every_torch_script_applies_num_threads_before_its_inputs(module, argv, 
     calls = []
     monkeypatch.setattr(torch, "set_num_threads", calls.append)
     monkeypatch.chdir(tmp_path)  # the relative inputs above and the scripts' defaults do not exist here
-    with pytest.raises(SystemExit) as stop:
-        code = importlib.import_module(module).main([*argv, "--num_threads", "3"])
-        raise SystemExit(code)  # evaluate.py returns its exit status
-    assert stop.value.code not in (0, None)
+    try:
+        code = run_main(module, importlib.import_module(module).main, [*argv, "--num_threads", "3"])
+    except SystemExit as stop:  # train.py ends in its own one-line exit
+        code = stop.code
+    assert code not in (0, None)
     assert calls == [3]
 
 
@@ -159,3 +160,41 @@ def test_training_scripts_reject_optimizer_settings_out_of_range(module, argv, f
     with pytest.raises(SystemExit):
         importlib.import_module(module).parse_args([*argv, *flags])
     assert message in capsys.readouterr().err
+
+
+def test_count_and_directory_flag_types_refuse_bad_values_in_one_usage_line(tmp_path, capsys):
+    from common.cli import existing_dir, positive_float, positive_int
+
+    parser = argparse.ArgumentParser(prog="prog")
+    parser.add_argument("--steps", type=positive_int)
+    parser.add_argument("--fps", type=positive_float)
+    parser.add_argument("--dir", type=existing_dir)
+    args = parser.parse_args(["--steps", "3", "--fps", "2.5", "--dir", str(tmp_path)])
+    assert (args.steps, args.fps, args.dir) == (3, 2.5, tmp_path)
+    (tmp_path / "file").write_text("")
+    for flags, message in [(["--steps", "0"], "argument --steps: must be 1 or more, got 0"),
+                           (["--steps", "2.5"], "argument --steps: expected an integer, got '2.5'"),
+                           (["--fps", "0"], "argument --fps: must be > 0, got 0"),
+                           (["--fps", "nan"], "argument --fps: must be a finite number, got nan"),
+                           (["--dir", str(tmp_path / "missing")], "missing: no such directory"),
+                           (["--dir", str(tmp_path / "file")], "file: not a directory")]:
+        with pytest.raises(SystemExit):
+            parser.parse_args(flags)
+        line = capsys.readouterr().err.strip().splitlines()[-1]
+        assert line.startswith("prog: error: ") and message in line
+
+
+def test_run_main_ends_on_a_path_in_the_way_in_one_line_and_lets_bugs_through(capsys):
+    from common.cli import run_main
+
+    def in_the_way(argv):
+        raise FileExistsError("out: already exists\n(pass --overwrite)")
+
+    assert run_main("prog", in_the_way, []) == 1
+    assert capsys.readouterr().err == "prog: error: out: already exists (pass --overwrite)\n"
+
+    def bug(argv):
+        raise ZeroDivisionError("a bug keeps its traceback")
+
+    with pytest.raises(ZeroDivisionError):
+        run_main("prog", bug, [])

@@ -8,7 +8,8 @@ import torch
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.config import GenieConfig, TrainingRecipe
 from genie.factorization import factorize_token_ids
-from genie.masking import MaskGITBatch, get_maskgit_collator
+from genie.masking import get_maskgit_collator
+from genie.model import MaskGITBatch
 
 T, S, VOCAB = 6, 16, 64  # 2 factors of 8
 H = W = 4
@@ -50,7 +51,7 @@ def test_invariants(non_mlm_ratio):
         originals = torch.stack([f["tokens"] for f in features]).clone()
         batch = collate(features)
         assert isinstance(batch, MaskGITBatch)
-        assert batch.target_ids is None and batch.actions is None and batch.latent_actions is None
+        assert batch.actions is None and batch.latent_actions is None
         assert batch.input_ids.dtype == batch.labels.dtype == torch.int64
         assert batch.input_ids.shape == batch.labels.shape == (4, T, H, W)
         assert torch.equal(batch.labels, originals)
@@ -158,9 +159,9 @@ def test_with_dataset_and_dataloader(tmp_path):
 
 
 @pytest.mark.parametrize("non_mlm_ratio", [0.0, 1.0])
-def test_teacher_forced_examples_mask_whole_frames_over_clean_context(non_mlm_ratio):
+def test_whole_frame_masking_masks_whole_frames_over_clean_context(non_mlm_ratio):
     config = tiny_config()
-    recipe = TrainingRecipe(whole_frame_mask_ratio=1.0, max_corrupt_rate=0.0, non_mlm_ratio=non_mlm_ratio)
+    recipe = TrainingRecipe(masking="whole_frames", max_corrupt_rate=0.0, non_mlm_ratio=non_mlm_ratio)
     collate = get_maskgit_collator(config, recipe, seed=0)
     first_targets = set()
     for step in range(20):
@@ -181,141 +182,23 @@ def test_teacher_forced_examples_mask_whole_frames_over_clean_context(non_mlm_ra
     assert first_targets == {1, 2, 3}  # every phase occurs
 
 
-@pytest.mark.parametrize("ratio", [0.5, 1.0])
-def test_clean_prefix_ratio_starts_whole_frame_masks_after_up_to_the_prompt(ratio):
-    """A share of the examples starts its periodic whole-frame masks anywhere in 1..num_prompt_frames, so a target
-    follows a long clean run (as a rollout's first frame follows its prompt); the masks keep their period."""
-    config = tiny_config(T=12, num_prompt_frames=6)
-    recipe = TrainingRecipe(whole_frame_mask_ratio=1.0, clean_prefix_ratio=ratio, max_corrupt_rate=0.0)
-    collate = get_maskgit_collator(config, recipe, seed=0)
-    firsts = []
-    for step in range(40):
-        batch = collate(make_features(8, T=12, seed=step))
-        whole = (frames(batch.input_ids) == config.mask_token_id).all(-1)
-        assert whole.any(dim=1).all() and not (whole[:, 1:] & whole[:, :-1]).any()
-        assert {int(g) for row in whole for g in torch.diff(torch.nonzero(row).flatten())} <= {2, 3}
-        firsts += whole.float().argmax(1).tolist()
-    counts = torch.bincount(torch.tensor(firsts), minlength=8)
-    assert counts[0] == 0 and counts[7:].sum() == 0 and (counts[1:7] > 0).all()
-    share_late = counts[4:7].sum().item() / len(firsts)  # starts the default's first period never reaches
-    assert abs(share_late - ratio * 3 / 6) < 0.08
-
-
-def test_whole_frame_mask_ratio_mixes_in_published_masking():
+def test_whole_frame_masking_draws_only_what_it_uses():
+    """The published scheme's later-frame corruption (non_mlm_ratio) plays no part in whole-frame masking, so the
+    batches are the same whatever it is set to; the light corruption of step 1 still reaches the kept frames."""
     config = tiny_config()
-    collate = get_maskgit_collator(config, TrainingRecipe(whole_frame_mask_ratio=0.5), seed=0)
-    whole, partial = 0, 0
-    for step in range(40):
-        per_frame = (frames(collate(make_features(8, seed=step)).input_ids) == config.mask_token_id).sum(-1)
-        example_is_whole = ((per_frame == 0) | (per_frame == S)).all(dim=1)
-        whole += int(example_is_whole.sum())
-        partial += int((~example_is_whole).sum())
-    assert 0.3 < whole / (whole + partial) < 0.75  # ~half (published masks are rarely whole-frame by chance)
+    batches = [get_maskgit_collator(config, TrainingRecipe(masking="whole_frames", max_corrupt_rate=0.2,
+                                                          non_mlm_ratio=r), seed=3)(make_features(8, seed=1))
+               for r in (0.0, 1.0)]
+    assert torch.equal(batches[0].input_ids, batches[1].input_ids)
+    x, labels = frames(batches[0].input_ids), frames(batches[0].labels)
+    kept = x != config.mask_token_id
+    assert 0 < (x[kept] != labels[kept]).float().mean() < 1 - 0.8 ** 2  # each factor at most 20 %
 
 
-@pytest.mark.parametrize("partial_ratio", [0.0, 0.5])
-def test_two_stream_batches_keep_a_clean_context_and_mask_every_later_frame(partial_ratio):
-    config = action_config()
-    recipe = TrainingRecipe(two_stream_ratio=1.0, two_stream_partial_ratio=partial_ratio, max_corrupt_rate=0.0,
-                            non_mlm_ratio=1.0)
-    collate = get_maskgit_collator(config, recipe, seed=0)
-    whole = partly = 0
-    for step in range(20):
-        features = make_features(4, seed=step, actions=True)
-        batch = collate(features)
-        assert batch.target_ids is not None and batch.actions is not None and batch.latent_actions is None
-        assert batch.target_ids.shape == batch.input_ids.shape == (4, T, H, W)
-        assert torch.equal(batch.actions, torch.stack([f["actions"]["a"] for f in features]))
-        context, targets, labels = frames(batch.input_ids), frames(batch.target_ids), frames(batch.labels)
-        assert torch.equal(context, labels), "the context is whole and, without corruption, clean"
-        masked = targets == config.mask_token_id
-        assert not masked[:, 0].any() and masked[:, 1:].any(-1).all(), "every frame >= 1 is a target"
-        assert torch.equal(targets[~masked], labels[~masked])
-        per_frame = masked[:, 1:].sum(-1)
-        whole += int((per_frame == S).sum())
-        partly += int((per_frame < S).sum())
-    if partial_ratio == 0.0:
-        assert partly == 0
-    else:
-        assert 0.25 < partly / (whole + partly) < 0.5  # ~half drawn partial, some of those masked whole anyway
-
-
-def test_two_stream_ratio_mixes_batches_and_keeps_light_corruption():
+def test_published_and_whole_frame_masking_differ_and_are_checked():
     config = tiny_config()
-    collate = get_maskgit_collator(config, TrainingRecipe(two_stream_ratio=0.5, max_corrupt_rate=1.0), seed=1)
-    kinds = []
-    for step in range(40):
-        batch = collate(make_features(2, seed=step))
-        kinds.append(batch.target_ids is not None)
-        if kinds[-1]:
-            context = batch.input_ids
-            assert not (context == config.mask_token_id).any()
-            assert (context >= 0).all() and (context < VOCAB).all()
-    assert 10 < sum(kinds) < 30
-    assert any(not torch.equal(b.input_ids, b.labels) for b in
-               [collate(make_features(2, seed=s)) for s in range(40)] if b.target_ids is not None), \
-        "the context gets step 1's random corruption"
-
-
-def test_context_noise_corrupts_only_the_chosen_examples_unmasked_frames_at_their_levels():
-    config = tiny_config()
-    recipe = TrainingRecipe(whole_frame_mask_ratio=1.0, max_corrupt_rate=0.0, context_noise_ratio=0.5,
-                            context_noise_max=0.8)
-    collate = get_maskgit_collator(config, recipe, seed=0)
-    replaced, expected, chosen, total = 0.0, 0.0, 0, 0
-    for step in range(60):
-        batch = collate(make_features(8, seed=step))
-        x, labels, level = frames(batch.input_ids), frames(batch.labels), batch.context_noise
-        assert level.shape == (8, T) and (level >= 0).all() and (level <= 0.8).all()
-        whole = (x == config.mask_token_id).all(-1)
-        assert (level[:, 0] == 0).all() and (level[whole] == 0).all(), "frame 0 and targets have no level"
-        changed = (x != labels) & (x != config.mask_token_id)
-        assert not changed[level == 0].any(), "only frames with a level are corrupted"
-        replaced += changed.float().sum().item()
-        expected += (level.unsqueeze(-1) * (1 - 1 / VOCAB)).expand(-1, -1, S).sum().item()
-        chosen += int((level > 0).any(1).sum())
-        total += 8
-    assert 0.35 < chosen / total < 0.65  # about context_noise_ratio of the examples
-    assert abs(replaced / expected - 1) < 0.1  # each token replaced with its frame's probability
-
-
-def test_without_context_noise_batches_carry_no_levels_and_draw_as_before():
-    config = tiny_config()
-    plain = get_maskgit_collator(config, TrainingRecipe(whole_frame_mask_ratio=1.0), seed=0)
-    noisy = get_maskgit_collator(config, TrainingRecipe(whole_frame_mask_ratio=1.0, context_noise_ratio=1.0,
-                                                        context_noise_max=0.0), seed=0)
-    a, b = plain(make_features(4)), noisy(make_features(4))
-    assert a.context_noise is None
-    # the noise is drawn after everything else, so a zero level leaves the batch as the plain recipe draws it
-    assert torch.equal(a.input_ids, b.input_ids) and (b.context_noise == 0).all()
-
-
-def test_speed_jitter_scales_the_named_columns_of_each_window_by_one_factor():
-    features = make_features(64, seed=4, actions=True)
-    features[3]["actions"]["a"][2] = float("nan")  # an unknown row stays unknown
-    recipe = TrainingRecipe(speed_jitter=0.5, speed_jitter_columns=[0, 2])
-    plain = get_maskgit_collator(action_config(), TrainingRecipe(), seed=5)(features)
-    jittered = get_maskgit_collator(action_config(), recipe, seed=5)(features)
-    # the tokens and masks are the same batch's: only the actions change
-    assert torch.equal(jittered.input_ids, plain.input_ids) and torch.equal(jittered.labels, plain.labels)
-    torch.testing.assert_close(jittered.actions[..., 1], plain.actions[..., 1], equal_nan=True)
-    assert jittered.actions[3, 2].isnan().all()
-    ratio_BTC = jittered.actions[..., [0, 2]] / plain.actions[..., [0, 2]]
-    scale_B = ratio_BTC[:, 0, 0]
-    known_BTC = ~ratio_BTC.isnan()
-    torch.testing.assert_close(ratio_BTC[known_BTC], scale_B[:, None, None].expand_as(ratio_BTC)[known_BTC])
-    assert (scale_B >= 1 / 1.5 - 1e-6).all() and (scale_B <= 1.5 + 1e-6).all()
-    # log-uniform: the factors spread over the range, above and below 1 about equally often
-    assert scale_B.log().abs().max() > 0.8 * math.log(1.5) and 16 < int((scale_B > 1).sum()) < 48
-
-
-def test_speed_jitter_off_and_its_columns_are_checked():
-    features = make_features(2, seed=6, actions=True)
-    off = get_maskgit_collator(action_config(), TrainingRecipe(speed_jitter_columns=[0]), seed=7)(features)
-    assert torch.equal(off.actions, get_maskgit_collator(action_config(), TrainingRecipe(), seed=7)(features).actions)
-    with pytest.raises(ValueError, match=r"speed_jitter_columns \[3\] name columns beyond the model's 3"):
-        get_maskgit_collator(action_config(), TrainingRecipe(speed_jitter=0.5, speed_jitter_columns=[3]),
-                             seed=7)(features)
-    # a model without real actions has nothing to scale
-    assert get_maskgit_collator(tiny_config(), TrainingRecipe(speed_jitter=0.5, speed_jitter_columns=[0]),
-                                seed=7)(features).actions is None
+    published = get_maskgit_collator(config, TrainingRecipe(), seed=0)(make_features(8))
+    per_frame = (frames(published.input_ids) == config.mask_token_id).sum(-1)
+    assert ((per_frame > 0) & (per_frame < S)).any(), "published masks are partial"
+    with pytest.raises(ValueError, match="masking must be one of"):
+        TrainingRecipe(masking="whole_frame")

@@ -1,16 +1,21 @@
-"""The copy ceiling (genie/copy_ceiling.py, evaluate.py --protocol copy_ceiling): hand-made frames whose best
+"""The copy ceiling (genie/copy_ceiling.py, python -m genie.diagnostics copy_ceiling): hand-made frames whose best
 copies are known."""
 import numpy as np
 import pytest
 import torch
 
 from data import write_token_dataset
-from evaluate import main
+from common.cli import run_main
 from genie.copy_ceiling import best_copies, ceiling_rollout, code_distances, neighbours
-from tests.test_evaluate import ROLLOUT_KEYS, eval_args, last_json_line, tiny  # noqa: F401 (tiny: a fixture)
+from genie.diagnostics import main
+from tests.test_evaluate import ROLLOUT_KEYS, error_line, last_json_line, tiny  # noqa: F401 (tiny: a fixture)
 
-SAMPLER_KEYS = {"maskgit_steps", "temperature", "copy_bias", "greedy_tokens", "sampled_tokens",
-                "stall_ratio"}
+SAMPLER_KEYS = {"maskgit_steps", "temperature", "copy_bias", "greedy_tokens", "stall_ratio"}
+
+
+def ceiling_args(data, *extra):
+    return ["copy_ceiling", "--val_data_dir", str(data), "--window_size", "8", "--stride", "3", "--batch_size", "3",
+            "--device", "cpu", *extra]
 
 
 def shifted(frame_BHW: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
@@ -87,8 +92,8 @@ def test_the_ceiling_rollout_compounds_on_its_own_frames():
 
 
 def test_copy_ceiling_protocol_json_line(tiny, tmp_path, capsys):
-    args = eval_args(tiny.data, tmp_path / "no_checkpoint", "--protocol", "copy_ceiling", "--num_prompt_frames",
-                     "3", "--max_examples", "4", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips")
+    args = ceiling_args(tiny.data, "--num_prompt_frames", "3", "--max_examples", "4", "--tokenizer_ckpt",
+                        str(tiny.tokenizer), "--skip_lpips")
     assert main(args + ["--ceiling_radius", "0"]) == 0
     held = last_json_line(capsys.readouterr().out)
     assert set(held) == (ROLLOUT_KEYS - SAMPLER_KEYS) | {"radius", "block", "exact_share"}
@@ -104,9 +109,8 @@ def test_the_ceiling_follows_a_panning_camera(tiny, tmp_path, capsys):
     video = np.stack([pattern[:, i:i + 4] for i in range(120)])
     write_token_dataset(tmp_path / "pan", video, segment_ids=np.zeros(120, dtype=np.int64),
                         metadata={"vocab_size": 64 ** 2})
-    args = eval_args(tmp_path / "pan", tmp_path / "no_checkpoint", "--protocol", "copy_ceiling", "--stride", "1",
-                     "--num_prompt_frames", "3", "--max_examples", "6", "--tokenizer_ckpt", str(tiny.tokenizer),
-                     "--skip_lpips")
+    args = ceiling_args(tmp_path / "pan", "--stride", "1", "--num_prompt_frames", "3", "--max_examples", "6",
+                        "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips")
     results = {}
     for radius, block in ((0, 1), (1, 1), (1, 4)):
         assert main(args + ["--ceiling_radius", str(radius), "--ceiling_block", str(block)]) == 0
@@ -120,17 +124,20 @@ def test_the_ceiling_follows_a_panning_camera(tiny, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra, code, message", [
-    (["--protocol", "rollout", "--ceiling_block", "2"], 2, "apply to --protocol copy_ceiling only"),
-    (["--protocol", "copy_ceiling", "--ceiling_radius", "-1"], 2, "--ceiling_radius must be >= 0"),
-    (["--protocol", "copy_ceiling", "--stall_ratio", "0.5"], 2, "--protocol copy_ceiling has no model"),
-    (["--protocol", "copy_ceiling", "--num_prompt_frames", "3", "--ceiling_block", "3"], 1,
-     "--ceiling_block 3 does not divide the 4 x 4"),
+    (["--ceiling_radius", "-1"], 2, "--ceiling_radius must be >= 0"),
+    (["--ceiling_block", "0"], 2, "--ceiling_block >= 1, got 2 and 0"),
+    (["--stall_ratio", "0.5"], 2, "unrecognized arguments: --stall_ratio"),  # a decoding rule: no model here
+    (["--checkpoint_dir", "ckpt"], 2, "unrecognized arguments: --checkpoint_dir"),
+    (["--num_prompt_frames", "8"], 2, "--num_prompt_frames must be in 1..7"),
+    (["--num_prompt_frames", "3", "--ceiling_block", "3"], 1, "--ceiling_block 3 does not divide the 4 x 4"),
 ])
 def test_bad_copy_ceiling_flags(tiny, capsys, extra, code, message):
     if code == 2:
         with pytest.raises(SystemExit) as exit_info:
-            main(eval_args(tiny.data, tiny.ckpt, *extra))
+            main(ceiling_args(tiny.data, *extra))
         assert exit_info.value.code == 2
     else:
-        assert main(eval_args(tiny.data, tiny.ckpt, *extra, "--tokenizer_ckpt", "unused", "--skip_lpips")) == code
-    assert message in capsys.readouterr().err
+        assert run_main("genie.diagnostics", main,
+                        ceiling_args(tiny.data, *extra, "--tokenizer_ckpt", "unused", "--skip_lpips")) == code
+    line = error_line(capsys.readouterr().err)
+    assert ": error: " in line and message in line

@@ -4,7 +4,7 @@ import json
 import pytest
 import torch
 
-from common.cli import TOKEN_CHOICES
+from genie.decoding import GREEDY_TOKEN_CHOICES
 from common.config import ConfigError
 from genie import GenieConfig, STMaskGIT
 from genie.copy_head import CopyHead, previous_frames
@@ -297,15 +297,16 @@ def test_greedy_token_choices_are_checked_and_match_the_scripts_flags():
     model = tiny_copy_model()
     with pytest.raises(ValueError, match="greedy tokens must be one of"):
         model.set_greedy_tokens("nearest")
-    flags = {flag: tuple(choices) for flag, _, choices in TOKEN_CHOICES}
-    assert flags["--greedy_tokens"] == GREEDY_TOKENS and flags["--greedy_tokens"][0] == "joint"
+    with pytest.raises(ValueError, match="greedy tokens must be one of"):
+        model.set_greedy_tokens("factored")  # removed: each factor's argmax
+    assert tuple(GREEDY_TOKEN_CHOICES) == GREEDY_TOKENS and GREEDY_TOKENS[0] == "joint"
     model.set_greedy_tokens("best_neighbour")
-    assert model.copy_head.best_neighbour_copies and model.joint_greedy
-    model.set_greedy_tokens("factored")
-    assert not model.copy_head.best_neighbour_copies and not model.joint_greedy
+    assert model.copy_head.best_neighbour_copies
+    model.set_greedy_tokens("joint")
+    assert not model.copy_head.best_neighbour_copies
 
 
-def test_greedy_decoding_takes_the_joint_mode_unless_set_to_factored():
+def test_greedy_decoding_takes_the_joint_mode():
     model = tiny_copy_model(radius=1, seed=4, match=True)
 
     def gen():
@@ -321,22 +322,14 @@ def test_greedy_decoding_takes_the_joint_mode_unless_set_to_factored():
         mode, factor_wise = prediction.mode_ids.view(4, 4, 4), unfactorize_token_ids(
             prediction.logits.argmax(dim=-2), F_, V).view(4, 4, 4)
         assert not torch.equal(mode, factor_wise)
-        # one MaskGIT step decodes the first new frame from the prompt alone: the joint mode, or each factor's argmax
+        # one MaskGIT step decodes the first new frame from the prompt alone: the joint mode, not each factor's argmax
         torch.testing.assert_close(generate(model, x[:, :2], 1, maskgit_steps=1)[0][:, 2], mode, atol=0, rtol=0)
         joint, joint_tf = generate(model, x[:, :2], 3, generator=gen())[0], teacher_forced(model, x, generator=gen())[0]
         torch.testing.assert_close(joint_tf, teacher_forced_uncached(model, x, generator=gen())[0], atol=0, rtol=0)
         torch.testing.assert_close(joint, generate_uncached(model, x[:, :2], 3, generator=gen())[0], atol=0, rtol=0)
-        model.set_greedy_tokens("factored")
-        torch.testing.assert_close(generate(model, x[:, :2], 1, maskgit_steps=1)[0][:, 2], factor_wise, atol=0,
-                                   rtol=0)
-        factored = generate(model, x[:, :2], 3, generator=gen())[0]
-        torch.testing.assert_close(factored, generate_uncached(model, x[:, :2], 3, generator=gen())[0], atol=0,
-                                   rtol=0)
-        assert not torch.equal(joint, factored)
-        assert not torch.equal(joint_tf, teacher_forced(model, x, generator=gen())[0])
         # sampling at a temperature does not read the greedy setting
         drawn = generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0]
-        model.set_greedy_tokens("joint")
+        model.set_greedy_tokens("best_neighbour")
         torch.testing.assert_close(generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0], drawn, atol=0,
                                    rtol=0)
 
@@ -363,7 +356,7 @@ def test_best_neighbour_rollouts_agree_cached_and_uncached_and_differ_from_joint
     assert not torch.equal(best, joint)
 
 
-def test_sampling_draws_whole_tokens_unless_set_to_factored():
+def test_sampling_draws_whole_tokens():
     model = tiny_copy_model(radius=1, seed=4, match=True)
 
     def gen():
@@ -377,9 +370,6 @@ def test_sampling_draws_whole_tokens_unless_set_to_factored():
                                                         generator=gen())[0][:, 2], atol=0, rtol=0)
     sources = model.copy_sources(x[:, 1:2])[:, 0]  # (B, S, K): frame 2's neighbours in frame 1
     assert (sources == joint.flatten(1).unsqueeze(-1)).any(-1).all()
-    model.set_joint_sampling(False)
-    factored = generate(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0, generator=gen())[0][:, 2]
-    assert not (sources == factored.flatten(1).unsqueeze(-1)).any(-1).all()  # some token no neighbour holds
 
 
 @pytest.mark.parametrize("temperature", [1.0, 0.5])
@@ -407,10 +397,8 @@ def test_whole_token_draws_follow_the_mixture(temperature):
             assert abs(counts[token] - expected) < 0.015
 
 
-@pytest.mark.parametrize("joint_sampling", [True, False])
-def test_a_sampler_gets_the_mixture_and_its_parts_without_the_mode(joint_sampling):
+def test_a_sampler_gets_the_mixture_and_its_parts_without_the_mode():
     model = tiny_copy_model(radius=1, seed=7, match=True)
-    model.set_joint_sampling(joint_sampling)
     x = torch.randint(0, MASK, (2, 3, 4, 4), generator=torch.Generator().manual_seed(1))
     sources = model.window_copy_sources(x)
     with torch.no_grad():
@@ -420,10 +408,7 @@ def test_a_sampler_gets_the_mixture_and_its_parts_without_the_mode(joint_samplin
     assert full.mode_ids is not None and lean.mode_ids is None and lean.mode_probs is None
     torch.testing.assert_close(lean.logits, full.logits, atol=0, rtol=0)
     for name in ("copy_log_weights", "copy_sources", "readout_logits"):
-        if joint_sampling:
-            torch.testing.assert_close(getattr(lean, name), getattr(full, name), atol=0, rtol=0)
-        else:
-            assert getattr(lean, name) is None
+        torch.testing.assert_close(getattr(lean, name), getattr(full, name), atol=0, rtol=0)
 
 
 def held_after_stalls(frames_BTHW: torch.Tensor, P: int, ratio: float) -> torch.Tensor:

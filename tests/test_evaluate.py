@@ -14,22 +14,24 @@ from torch.utils.data import DataLoader
 
 from common.images import psnr
 from data import RawTokenDataset, read_metadata, write_token_dataset
-from evaluate import (FrameScorer, evaluate, example_indices, main, rollout_result, score_rollout,
-                      token_statistics)
+import genie.evaluation
+from common.cli import run_main
+from evaluate import main
 from genie import GenieConfig, STMaskGIT
+from genie.evaluation import (FrameScorer, example_indices, rollout_result, score_rollout, teacher_forced_evaluate,
+                              token_statistics)
 from genie.metrics import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
                            token_accuracy)
 from genie.inference import teacher_forced
 
 REPO = Path(__file__).resolve().parents[1]
 VOCAB = 64 ** 2
-JSON_KEYS = {"loss", "acc", "copy_acc", "bit_err", "pred_bit_err", "copy_bit_err", "pred_lpips", "gen_time", "dec_time",
-             "num_examples"}
+JSON_KEYS = {"loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time", "num_examples"}
 ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold")
                        for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
 ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
                                      "gen_time", "num_examples", "maskgit_steps", "temperature", "copy_bias",
-                                     "greedy_tokens", "sampled_tokens", "stall_ratio"} | {
+                                     "greedy_tokens", "stall_ratio"} | {
     f"{name}_{stat}{suffix}" for name in ("rollout", "true") for stat in ("unchanged", "repeated")
     for suffix in ("", "_mean")}
 
@@ -120,6 +122,17 @@ def last_json_line(text: str) -> dict:
     return json.loads(text.strip().splitlines()[-1])
 
 
+def run_evaluate(argv) -> int:
+    """evaluate.py's exit status as the script ends (bad input: one error line, status 1)."""
+    return run_main("evaluate.py", main, argv)
+
+
+def error_line(err: str) -> str:
+    """The last line of stderr, checked to be a one-line error with no traceback before it."""
+    assert "Traceback" not in err, err
+    return err.strip().splitlines()[-1]
+
+
 def make_tokenizer(path: Path) -> Path:
     """A random MAGVIT2 tokenizer decoding the 4x4 token frames of make_dataset to 32x32 images."""
     from magvit2 import VQConfig, VQModel
@@ -173,16 +186,6 @@ def test_json_line_metrics_and_saved_outputs(tiny, capsys):
     assert result["acc"] == pytest.approx((video[:, 1:8] == video[:, 8:]).mean())
     # copy_acc: copying ground-truth frame t-1, on the same windows
     assert result["copy_acc"] == pytest.approx((windows[:, :-1] == windows[:, 1:]).double().mean().item())
-    # wrong bits per token (12-bit ids): of the saved predictions, of copying, and expected of a draw
-    popcount = np.vectorize(lambda v: bin(int(v)).count("1"))
-    assert result["pred_bit_err"] == pytest.approx(popcount(video[:, 1:8] ^ video[:, 8:]).mean())
-    assert result["copy_bit_err"] == pytest.approx(popcount((windows[:, :-1] ^ windows[:, 1:]).numpy()).mean())
-    p_NVF = logits.double().softmax(dim=1).permute(0, 3, 4, 5, 1, 2).reshape(-1, 64, 2).numpy()
-    targets = windows[:, 1:].reshape(-1).numpy()
-    distance_VV = popcount(np.arange(64)[:, None] ^ np.arange(64)[None, :])  # bits between two factor values
-    expected = sum((p_NVF[:, :, f] * distance_VV[:, targets // 64 ** f % 64].T).sum(1) for f in range(2))
-    assert result["bit_err"] == pytest.approx(expected.mean(), rel=1e-4)
-    assert 0 < result["bit_err"] < 12 and result["copy_bit_err"] > 0
     assert RawTokenDataset(out_dir, window_size=15, stride=1, filter_overlaps=True).valid_start_inds.tolist() == \
         [15 * i for i in range(5)]
 
@@ -228,7 +231,8 @@ def test_lpips_and_decode_time_with_a_stub_scorer(tiny):
     model = STMaskGIT.from_pretrained(tiny.ckpt)
     args = SimpleNamespace(window_size=8, maskgit_steps=2, temperature=0.0, unmask_mode="random", seed=0)
     outputs = []
-    result = evaluate(model, DataLoader(dataset, batch_size=4), args, torch.device("cpu"), StubScorer(), outputs)
+    result = teacher_forced_evaluate(model, DataLoader(dataset, batch_size=4), args, torch.device("cpu"), StubScorer(),
+                                     outputs)
     video = torch.from_numpy(np.concatenate(outputs))
     expected = ((video[:, 1:8] % 256) - (video[:, 8:] % 256)).abs().float().mean(dim=(2, 3)) / 255
     assert result["pred_lpips"] == pytest.approx(expected.mean().item(), rel=1e-5)
@@ -283,9 +287,9 @@ def test_bad_inputs_give_clear_errors(tiny, tmp_path, capsys, monkeypatch, case,
         monkeypatch.setenv("WORLD_SIZE", "2")
     elif case == "copy_bias":
         extra += ["--copy_bias", "2"]
-    assert main(eval_args(data, ckpt, *extra)) == 1
+    assert run_evaluate(eval_args(data, ckpt, *extra)) == 1
     captured = capsys.readouterr()
-    assert message in captured.err
+    assert error_line(captured.err).startswith("evaluate.py: error: ") and message in error_line(captured.err)
     assert captured.out == ""
 
 
@@ -377,77 +381,51 @@ def test_rollout_protocol_json_line(tiny, capsys):
     assert with_lpips["hold_psnr"] == result["hold_psnr"]
 
 
-PER_HORIZON_KEYS = [f"{name}_{metric}" for name in ("rollout", "hold") for metric in ("psnr", "ssim")] + [
-    f"{name}_{stat}" for name in ("rollout", "true") for stat in ("unchanged", "repeated")]
-
-
-@pytest.mark.parametrize("protocol", ["rollout", "copy_ceiling"])
-def test_per_window_scores_place_each_window_and_average_to_the_summary(tiny, tmp_path, capsys, protocol):
-    out = tmp_path / "not_yet" / "windows.jsonl"  # the parent directory is created
-    assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", protocol, "--num_prompt_frames", "3",
-                          "--max_examples", "5", "--spread_examples", "--tokenizer_ckpt", str(tiny.tokenizer),
-                          "--skip_lpips", "--per_window_out", str(out))) == 0  # batches of 3: 3 + 2 windows
-    summary = last_json_line(capsys.readouterr().out)
-    lines = [json.loads(line) for line in out.read_text().splitlines()]
-    dataset = RawTokenDataset(tiny.data, window_size=8, stride=3, filter_overlaps=True)
-    segment_ids = np.fromfile(tiny.data / "segment_ids.bin", dtype="<i4")
-    assert [line["window"] for line in lines] == example_indices(len(dataset), 5, True)
-    for line in lines:
-        assert line["first_frame"] == dataset.valid_start_inds[line["window"]]
-        assert line["segment_id"] == segment_ids[line["first_frame"]]
-        assert "rollout_lpips" not in line  # --skip_lpips
-    for key in PER_HORIZON_KEYS:
-        assert all(len(line[key]) == 8 - 3 for line in lines)
-        assert np.mean([line[key] for line in lines], axis=0) == pytest.approx(summary[key], abs=1e-5)
-    assert len({tuple(line["hold_psnr"]) for line in lines}) == 5  # each window's own scores, not the mean
-
-
 @pytest.mark.parametrize("extra, message", [
     (["--protocol", "rollout", "--num_prompt_frames", "0"], "--num_prompt_frames must be in 1..7"),
     (["--protocol", "rollout", "--num_prompt_frames", "8"], "--num_prompt_frames must be in 1..7"),
-    (["--num_prompt_frames", "3"], "--protocol rollout and copy_ceiling only"),
+    (["--num_prompt_frames", "3"], "--num_prompt_frames applies to --protocol rollout only"),
     (["--protocol", "rollout", "--num_prompt_frames", "3", "--save_outputs_dir", "out"],
      "does not apply to --protocol rollout"),
-    (["--per_window_out", "windows.jsonl"], "--per_window_out applies to --protocol rollout and copy_ceiling only"),
-    (["--protocol", "rollout", "--num_prompt_frames", "3", "--per_window_out", "."], "is a directory"),
+    (["--protocol", "copy_ceiling"], "invalid choice: 'copy_ceiling'"),  # python -m genie.diagnostics copy_ceiling
+    (["--per_window_out", "windows.jsonl"], "unrecognized arguments: --per_window_out"),  # diagnostics per_window
+    (["--withhold_actions"], "unrecognized arguments: --withhold_actions"),  # diagnostics withheld_actions
+    (["--greedy_tokens", "factored"], "invalid choice: 'factored'"),
+    (["--maskgit_steps", "0"], "--maskgit_steps must be >= 1, got 0"),
+    (["--temperature=-1"], "--temperature must be >= 0, got -1.0"),
 ])
-def test_bad_rollout_flags_are_usage_errors(tiny, capsys, extra, message):
+def test_bad_flags_are_usage_errors(tiny, capsys, extra, message):
     with pytest.raises(SystemExit) as exit_info:
         main(eval_args(tiny.data, tiny.ckpt, *extra))
     assert exit_info.value.code == 2
-    assert message in capsys.readouterr().err
+    line = error_line(capsys.readouterr().err)
+    assert line.startswith("evaluate.py: error: ") and message in line
 
 
 def test_rollout_needs_a_tokenizer_even_with_skip_lpips(tiny, tmp_path, capsys):
-    assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3", "--skip_lpips",
-                          "--tokenizer_ckpt", str(tmp_path / "nope.ckpt"))) == 1
+    assert run_evaluate(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3",
+                                  "--skip_lpips", "--tokenizer_ckpt", str(tmp_path / "nope.ckpt"))) == 1
     captured = capsys.readouterr()
-    assert "decodes frames for PSNR and SSIM" in captured.err and captured.out == ""
+    assert "decodes frames for PSNR and SSIM" in error_line(captured.err) and captured.out == ""
 
 
-TOKEN_CHOICE_CASES = [  # (flag, the model's setter, the flag's value (None: left out), what the setter gets)
-    ("greedy_tokens", "set_greedy_tokens", None, "joint"), ("greedy_tokens", "set_greedy_tokens", "joint", "joint"),
-    ("greedy_tokens", "set_greedy_tokens", "factored", "factored"),
-    ("greedy_tokens", "set_greedy_tokens", "best_neighbour", "best_neighbour"),
-    ("sampled_tokens", "set_joint_sampling", None, True), ("sampled_tokens", "set_joint_sampling", "joint", True),
-    ("sampled_tokens", "set_joint_sampling", "factored", False)]
-
-
-@pytest.mark.parametrize("name, setter, choice, expected", TOKEN_CHOICE_CASES)
-def test_token_choice_flags_set_the_models_decoding(tiny, capsys, monkeypatch, name, setter, choice, expected):
+@pytest.mark.parametrize("choice, expected", [(None, "joint"), ("joint", "joint"),
+                                              ("best_neighbour", "best_neighbour")])
+def test_greedy_tokens_sets_the_models_decoding(tiny, capsys, monkeypatch, choice, expected):
     settings = []
-    real = getattr(STMaskGIT, setter)
-    monkeypatch.setattr(STMaskGIT, setter, lambda model, value: settings.append(value) or real(model, value))
-    flag = () if choice is None else (f"--{name}", choice)
+    real = STMaskGIT.set_greedy_tokens
+    monkeypatch.setattr(STMaskGIT, "set_greedy_tokens",
+                        lambda model, value: settings.append(value) or real(model, value))
+    flag = () if choice is None else ("--greedy_tokens", choice)
     assert main(eval_args(tiny.data, tiny.ckpt, "--skip_lpips", "--max_examples", "1", *flag)) == 0
     assert settings == [expected]
 
 
 def test_stall_ratio_reaches_the_rollouts_and_the_json_line(tiny, capsys, monkeypatch):
-    import evaluate as script  # the module; `evaluate` here is its teacher-forced function
     seen = []
-    real = script.generate
-    monkeypatch.setattr(script, "generate", lambda *a, **kw: seen.append(kw["stall_ratio"]) or real(*a, **kw))
+    real = genie.evaluation.generate
+    monkeypatch.setattr(genie.evaluation, "generate",
+                        lambda *a, **kw: seen.append(kw["stall_ratio"]) or real(*a, **kw))
     assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3", "--max_examples",
                           "2", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips", "--stall_ratio", "1")) == 0
     assert seen == [1.0] and last_json_line(capsys.readouterr().out)["stall_ratio"] == 1.0
@@ -457,3 +435,16 @@ def test_stall_ratio_reaches_the_rollouts_and_the_json_line(tiny, capsys, monkey
     with pytest.raises(SystemExit):
         main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "1", "--stall_ratio", "1"))
     assert "needs --num_prompt_frames >= 2, got 1" in capsys.readouterr().err
+
+
+def test_bad_input_ends_the_script_in_one_line(tiny, tmp_path):
+    """As a script: a usage error (exit status 2) and a missing dataset (1) end in one error line, no traceback."""
+    env = {k: v for k, v in os.environ.items() if k != "WORLD_SIZE"}
+    for extra, code, message in [
+            (["--stall_ratio", "2"], 2, "evaluate.py: error: argument --stall_ratio: expected a number in (0, 1]"),
+            (["--val_data_dir", str(tmp_path / "missing")], 1, f"evaluate.py: error: {tmp_path / 'missing'}")]:
+        argv = eval_args(tiny.data, tiny.ckpt, "--skip_lpips") + extra  # the later --val_data_dir wins
+        proc = subprocess.run([sys.executable, str(REPO / "evaluate.py"), *argv], capture_output=True, text=True,
+                              cwd=tiny.root, env=env, timeout=300)
+        assert proc.returncode == code and proc.stdout == ""
+        assert error_line(proc.stderr).startswith(message), proc.stderr

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from common.cli import run_main
 from data import RawTokenDataset, read_metadata
 import genie.generate as generate  # the script module (genie.generate, the function, is genie.inference.generate)
 from genie import GenieConfig, STMaskGIT
@@ -29,6 +30,16 @@ def run(setup, out, *extra):
     generate.main(["--val_data_dir", str(setup / "val"), "--checkpoint_dir", str(setup / "ckpt"),
                    "--output_dir", str(out), "--window_size", str(T), "--num_prompt_frames", str(P),
                    "--stride", "1", "--device", "cpu", *extra])
+
+
+def run_script(argv, capsys) -> str:
+    """genie/generate.py's main as the script runs it, for bad input: status 1 and one error line, returned."""
+    assert run_main("generate.py", generate.main, argv) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("generate.py: error: ")
+    return line
 
 
 def read_examples(out):
@@ -90,12 +101,12 @@ def test_sampling_is_reproducible_with_a_seed(setup, tmp_path):
     (lambda root: make_token_dataset(root / "data", [8], vocab_size=1024, num_distinct=4),
      r"vocab_size 1024 differs .* 4096"),
 ])
-def test_data_checkpoint_mismatch_is_a_clear_error(setup, tmp_path, make_bad, pattern):
+def test_data_checkpoint_mismatch_is_a_clear_error(setup, tmp_path, capsys, make_bad, pattern):
     make_bad(tmp_path)
-    with pytest.raises(SystemExit, match=pattern):
-        generate.main(["--val_data_dir", str(tmp_path / "data"), "--checkpoint_dir", str(setup / "ckpt"),
-                       "--output_dir", str(tmp_path / "out"), "--window_size", str(T), "--num_prompt_frames",
-                       str(P), "--stride", "1", "--device", "cpu"])
+    assert re.search(pattern, run_script(["--val_data_dir", str(tmp_path / "data"), "--checkpoint_dir",
+                                          str(setup / "ckpt"), "--output_dir", str(tmp_path / "out"), "--window_size",
+                                          str(T), "--num_prompt_frames", str(P), "--stride", "1", "--device", "cpu"],
+                                         capsys))
     assert not (tmp_path / "out").exists()
 
 
@@ -104,16 +115,20 @@ def test_data_checkpoint_mismatch_is_a_clear_error(setup, tmp_path, make_bad, pa
     (("--example_ind", "9", "--num_examples", "10"), r"examples 9..18 requested but the dataset has 14 windows"),
     (("--copy_bias", "1"), r"--copy_bias: the checkpoint .*ckpt has no copy head"),
 ])
-def test_argument_errors(setup, tmp_path, extra, pattern):
-    with pytest.raises(SystemExit, match=pattern):
-        run(setup, tmp_path, *extra)
+def test_argument_errors(setup, tmp_path, capsys, extra, pattern):
+    assert re.search(pattern, run_script(["--val_data_dir", str(setup / "val"), "--checkpoint_dir",
+                                          str(setup / "ckpt"), "--output_dir", str(tmp_path), "--window_size", str(T),
+                                          "--num_prompt_frames", str(P), "--stride", "1", "--device", "cpu", *extra],
+                                         capsys))
 
 
-def test_missing_checkpoint(setup, tmp_path):
-    with pytest.raises(SystemExit, match="not_there"):
-        generate.main(["--val_data_dir", str(setup / "val"), "--checkpoint_dir", str(tmp_path / "not_there"),
-                       "--output_dir", str(tmp_path / "out"), "--window_size", str(T), "--num_prompt_frames", str(P),
-                       "--device", "cpu"])
+@pytest.mark.parametrize("missing", ["checkpoint", "data"])
+def test_missing_inputs(setup, tmp_path, capsys, missing):
+    paths = {"checkpoint": setup / "ckpt", "data": setup / "val", missing: tmp_path / "not_there"}
+    assert "not_there" in run_script(["--val_data_dir", str(paths["data"]), "--checkpoint_dir",
+                                      str(paths["checkpoint"]), "--output_dir", str(tmp_path / "out"),
+                                      "--window_size", str(T), "--num_prompt_frames", str(P), "--device", "cpu"],
+                                     capsys)
 
 
 def test_metadata_is_valid_json_with_generation_settings(setup, tmp_path):
@@ -123,26 +138,21 @@ def test_metadata_is_valid_json_with_generation_settings(setup, tmp_path):
     assert meta["frames_per_example"] == 2 * T - P and meta["num_examples"] == 1
 
 
-@pytest.mark.parametrize("name, setter, choice, expected", [
-    ("greedy_tokens", "set_greedy_tokens", "joint", "joint"),
-    ("greedy_tokens", "set_greedy_tokens", "factored", "factored"),
-    ("greedy_tokens", "set_greedy_tokens", "best_neighbour", "best_neighbour"),
-    ("sampled_tokens", "set_joint_sampling", "joint", True),
-    ("sampled_tokens", "set_joint_sampling", "factored", False)])
-def test_token_choices_reach_a_copy_model_and_its_metadata(setup, tmp_path, monkeypatch, name, setter, choice,
-                                                           expected):
+@pytest.mark.parametrize("choice", ["joint", "best_neighbour"])
+def test_greedy_tokens_reach_a_copy_model_and_its_metadata(setup, tmp_path, monkeypatch, choice):
     torch.manual_seed(0)
     model = STMaskGIT(GenieConfig(**TINY, copy_radius=1))
     model.init_weights()
     model.save_pretrained(tmp_path / "copy_ckpt")
     settings = []
-    real = getattr(STMaskGIT, setter)
-    monkeypatch.setattr(STMaskGIT, setter, lambda m, value: settings.append(value) or real(m, value))
+    real = STMaskGIT.set_greedy_tokens
+    monkeypatch.setattr(STMaskGIT, "set_greedy_tokens", lambda m, value: settings.append(value) or real(m, value))
     generate.main(["--val_data_dir", str(setup / "val"), "--checkpoint_dir", str(tmp_path / "copy_ckpt"),
                    "--output_dir", str(tmp_path / "out"), "--window_size", str(T), "--num_prompt_frames", str(P),
-                   "--stride", "1", "--device", "cpu", f"--{name}", choice])
-    assert settings == [expected]
-    assert read_metadata(tmp_path / "out")[name] == choice
+                   "--stride", "1", "--device", "cpu", "--greedy_tokens", choice, "--copy_bias", "2"])
+    assert settings == [choice]
+    meta = read_metadata(tmp_path / "out")
+    assert (meta["greedy_tokens"], meta["copy_bias"]) == (choice, 2.0)
 
 
 def test_stall_ratio_reaches_generation_and_metadata(setup, tmp_path, monkeypatch):
@@ -163,8 +173,13 @@ def test_stall_ratio_reaches_generation_and_metadata(setup, tmp_path, monkeypatc
     (("--stall_ratio", "half"), r"expected a number in \(0, 1\], got 'half'"),
     (("--stall_ratio", "0.4", "--teacher_force_time"), "ground truth, which never stalls"),
     (("--stall_ratio", "0.4", "--num_prompt_frames", "1"), "needs --num_prompt_frames >= 2, got 1"),
+    (("--greedy_tokens", "factored"), "argument --greedy_tokens: invalid choice: 'factored'"),
+    (("--maskgit_steps", "0"), "--maskgit_steps must be >= 1, got 0"),
+    (("--temperature=-0.5",), "--temperature must be >= 0, got -0.5"),
 ])
-def test_bad_stall_ratios_are_usage_errors(setup, tmp_path, capsys, extra, pattern):
-    with pytest.raises(SystemExit):
+def test_bad_decoding_flags_are_usage_errors(setup, tmp_path, capsys, extra, pattern):
+    with pytest.raises(SystemExit) as exit_info:
         run(setup, tmp_path, *extra)
-    assert re.search(pattern, capsys.readouterr().err)
+    assert exit_info.value.code == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]  # argparse's usage, then one error line
+    assert line.startswith("generate.py: error: ") and re.search(pattern, line)

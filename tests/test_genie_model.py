@@ -14,8 +14,6 @@ from common.config import ConfigError
 from common.errors import CheckpointError
 from genie import GenieConfig, MaskGITBatch, STMaskGIT, TrainingRecipe
 from genie.checkpoint import load_state_dict_checked
-from genie import metrics, objectives
-from genie.objectives import reveal_own_predictions, shift_targets_past_own_frames, two_stream_loss
 from genie.reference import full_logits_loss
 
 CONFIG_DIR = Path(genie.__file__).parent / "configs"
@@ -290,46 +288,6 @@ def test_masked_only_readout_gives_same_loss_acc_and_gradients(variant):
         torch.testing.assert_close(grads[1][name], grads[0][name], atol=1e-6, rtol=1e-5)
 
 
-@pytest.mark.parametrize("variant", list(VARIANTS))
-def test_two_stream_loss_equals_one_full_pass_per_target(variant):
-    """target_ids: every frame t >= 1 predicted from clean frames < t in one pass; the reference runs the whole
-    window once per target (frame t = its masked version, later frames masked) through model.logits."""
-    uses_actions = variant == "actions"
-    model = variant_model(variant)
-    config = model.config
-    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
-    g = torch.Generator().manual_seed(7)
-    masked = torch.rand(labels.shape, generator=g) < 0.6
-    masked[:, 0] = False
-    targets = labels.masked_fill(masked, config.mask_token_id)
-    kwargs = dict(latent_actions=torch.randint(0, 3, (2, 4), generator=g)) if uses_actions else {}
-
-    out = model(MaskGITBatch(labels, labels, target_ids=targets, **kwargs))
-    out.loss.backward()
-    grads = {n: p.grad.clone() for n, p in model.named_parameters()}
-    model.zero_grad()
-
-    V = config.factored_vocab_size
-    ce_sum, right_sum = 0.0, 0
-    for t in range(1, 4):
-        window = labels.clone()
-        window[:, t] = targets[:, t]
-        window[:, t + 1:] = config.mask_token_id
-        logp = model.logits(window, **kwargs)[:, :, :, t].transpose(1, 2).log_softmax(dim=2)  # (B, F, V, H, W)
-        lab = labels[:, t]
-        ce = -(logp[:, 0].gather(1, (lab % V).unsqueeze(1)) + logp[:, 1].gather(1, (lab // V).unsqueeze(1)))
-        right = (logp[:, 0].argmax(1) == lab % V) & (logp[:, 1].argmax(1) == lab // V)
-        ce_sum = ce_sum + ce.squeeze(1)[masked[:, t]].sum()
-        right_sum += int(right[masked[:, t]].sum())
-    reference = ce_sum / masked.sum()
-    reference.backward()
-    torch.testing.assert_close(out.loss, reference.detach())
-    torch.testing.assert_close(out.acc, torch.tensor(right_sum / masked.sum().item()))
-    assert grads["pos_embed_TSC"].abs().sum() > 0
-    for name, p in model.named_parameters():
-        torch.testing.assert_close(grads[name], p.grad, atol=1e-6, rtol=1e-5)
-
-
 def test_gradient_checkpointing_gives_the_same_loss_and_gradients_with_less_saved():
     config = tiny_config(mlp_drop=0.1)  # dropout: the recomputation must replay the same random mask
     model = sharp_readout_model(config).train()
@@ -353,24 +311,13 @@ def test_gradient_checkpointing_gives_the_same_loss_and_gradients_with_less_save
     assert saved_cp < saved_plain / 2  # only block inputs are kept for the backward pass
 
 
-def test_two_stream_rejects_masked_context_and_mismatched_targets():
-    config = tiny_config()
-    model = STMaskGIT(config)
-    labels = random_tokens(config, B=1, T=4, mask_rate=0.0)
-    with pytest.raises(ValueError, match="context frames .* must not hold mask tokens"):
-        model(MaskGITBatch(labels.masked_fill(torch.ones_like(labels, dtype=torch.bool), config.mask_token_id),
-                           labels, target_ids=labels))
-    with pytest.raises(ValueError, match="target_ids must have the shape of input_ids"):
-        two_stream_loss(model, MaskGITBatch(labels, labels, target_ids=labels[:, :-1]))
-
-
 @pytest.mark.parametrize("variant", ["plain", "copy", "copy_match"])
 def test_self_reveal_fills_masked_tokens_with_the_models_greedy_guesses(variant):
     model = variant_model(variant)
     config = model.config
     x = random_tokens(config, B=3, T=4, mask_rate=0.7)
     torch.manual_seed(0)
-    revealed = reveal_own_predictions(model, x, None, ratio=1.0)
+    revealed = model.reveal_own_predictions(x, None, 1.0)
     was_masked = x == config.mask_token_id
     assert torch.equal(revealed[~was_masked], x[~was_masked]), "given tokens stay"
     assert torch.equal(revealed[:, 0], x[:, 0]), "frame 0 is never a target"
@@ -393,7 +340,7 @@ def test_self_reveal_only_in_training_and_only_for_the_chosen_share():
     torch.manual_seed(5)
     trained_on = model.train()(MaskGITBatch(x, labels), recipe)
     torch.manual_seed(5)
-    revealed = reveal_own_predictions(model, x, None, ratio=1.0)
+    revealed = model.reveal_own_predictions(x, None, 1.0)
     expected = full_logits_loss(model.eval(), MaskGITBatch(revealed, labels))  # no reveal on this path
     torch.testing.assert_close(trained_on.loss, expected.loss)
     assert not torch.equal(revealed, x)
@@ -402,226 +349,30 @@ def test_self_reveal_only_in_training_and_only_for_the_chosen_share():
     assert not torch.allclose(evaluated.loss, trained_on.loss)
     torch.manual_seed(5)
     assert torch.allclose(model.train()(MaskGITBatch(x, labels)).loss, evaluated.loss)  # the published recipe
-    assert torch.equal(reveal_own_predictions(model, x, None, ratio=0.0), x)
+    assert torch.equal(model.reveal_own_predictions(x, None, 0.0), x)
 
 
-@pytest.mark.parametrize("variant", ["plain", "copy_match"])
-def test_own_context_fills_whole_masked_frames_with_greedy_guesses_and_targets_the_next(variant):
-    model = variant_model(variant)
-    config = model.config
-    x = random_tokens(config, B=2, T=4, mask_rate=0.0)
-    m = config.mask_token_id
-    x[0, 1] = m  # example 0: frame 1 whole, frame 2 becomes the target
-    x[1, 3] = m  # example 1: only the last frame whole, so nothing follows it
-    x[1, 1, 0, :2] = m  # partly masked tokens are left as they are
-    shifted = shift_targets_past_own_frames(model, x, None, ratio=1.0)
-    with torch.no_grad():  # each whole frame gets the argmax of the full-logits path on the original input
-        logits = model.logits(x).transpose(1, 2)  # (B, F, V, T, H, W)
-    greedy = logits[:, 0].argmax(1) + config.factored_vocab_size * logits[:, 1].argmax(1)
-    for b, t in [(0, 1), (1, 3)]:
-        assert torch.equal(shifted[b, t], greedy[b, t])
-    assert (shifted[0, 2] == m).all()
-    assert torch.equal(shifted[0, [0, 3]], x[0, [0, 3]])
-    assert torch.equal(shifted[1, :3], x[1, :3]), "nothing after the last frame: only the fill"
-    assert torch.equal(shift_targets_past_own_frames(model, x, None, ratio=0.0), x)
-    model.train()
-    batch = MaskGITBatch(x, random_tokens(config, B=2, T=4, mask_rate=0.0, seed=3))
-    torch.manual_seed(5)
-    trained_on = model(batch, TrainingRecipe(own_context_ratio=1.0))
-    expected = full_logits_loss(model.eval(), MaskGITBatch(shifted, batch.labels))
-    torch.testing.assert_close(trained_on.loss, expected.loss)
-    model.eval()
-    torch.testing.assert_close(model(batch, TrainingRecipe(own_context_ratio=1.0)).loss,
-                               full_logits_loss(model, batch).loss)  # eval mode: the targets stay
-
-
-@pytest.mark.parametrize("variant", ["plain", "copy_match"])
-def test_guesses_at_a_temperature_are_draws_from_the_models_distribution(variant):
-    model = variant_model(variant)
-    config = model.config
-    x = random_tokens(config, B=3, T=4, mask_rate=0.7)
-    was_masked = x == config.mask_token_id
-    draws = []
-    for seed in (0, 1):
-        torch.manual_seed(seed)
-        revealed = reveal_own_predictions(model, x, None, ratio=1.0, temperature=1.0)
-        assert torch.equal(revealed[~was_masked], x[~was_masked]), "given tokens stay"
-        draws.append(revealed)
-    filled = was_masked & (draws[0] != config.mask_token_id) & (draws[1] != config.mask_token_id)
-    assert filled.sum() > 10
-    assert not torch.equal(draws[0][filled], draws[1][filled]), "other random numbers, other draws"
-    with torch.no_grad():
-        logits = model.logits(x).transpose(1, 2)  # (B, F, V, T, H, W)
-    greedy = logits[:, 0].argmax(1) + config.factored_vocab_size * logits[:, 1].argmax(1)
-    assert (draws[0][filled] != greedy[filled]).any(), "not the greedy guesses"
-    # a distribution with all its mass on one token is drawn as that token
-    with torch.no_grad():
-        if model.copy_head is None:
-            model.out_x_proj.weight.mul_(1e4)  # each factor's softmax becomes its argmax
-            expected = greedy
-        else:  # every weight on the neighbour at the same position: the token there in the frame before
-            model.copy_head.score_proj.weight.zero_()
-            model.copy_head.score_proj.bias.fill_(-1e4)
-            model.copy_head.score_proj.bias[model.copy_head.num_sources // 2] = 0.0
-            expected = torch.cat([x[:, :1], x[:, :-1]], dim=1)
-    torch.manual_seed(2)
-    sharp = reveal_own_predictions(model, x, None, ratio=1.0, temperature=1.0)
-    known = (sharp != config.mask_token_id) & was_masked & (expected != config.mask_token_id)
-    assert known.sum() > 5
-    assert torch.equal(sharp[known], expected[known])
-    torch.manual_seed(3)
-    shifted = shift_targets_past_own_frames(model, x.masked_fill(torch.zeros_like(was_masked).index_fill_(
-        1, torch.tensor([2]), True), config.mask_token_id), None, ratio=1.0, temperature=1.0)
-    if model.copy_head is None:
-        assert torch.equal(shifted[:, 2], greedy_of(model, x, frame=2))
-    else:
-        copied = expected[:, 2] != config.mask_token_id
-        assert torch.equal(shifted[:, 2][copied], expected[:, 2][copied])
-
-
-def greedy_of(model, x, frame):
-    """Each factor's argmax for `frame` of x with that frame masked whole (B, H, W)."""
-    window = x.clone()
-    window[:, frame] = model.config.mask_token_id
-    with torch.no_grad():
-        logits = model.logits(window).transpose(1, 2)[:, :, :, frame]  # (B, F, V, H, W)
-    return logits[:, 0].argmax(1) + model.config.factored_vocab_size * logits[:, 1].argmax(1)
-
-
-def test_guess_temperature_reaches_the_training_loss():
-    model = variant_model("copy_match")
-    config = model.config
-    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
-    x = labels.masked_fill(torch.rand(labels.shape, generator=torch.Generator().manual_seed(1)) < 0.8,
-                           config.mask_token_id)
-    model.train()
-    losses = {}
-    for temperature in (0.0, 1.0):
-        torch.manual_seed(5)
-        losses[temperature] = model(MaskGITBatch(x, labels), TrainingRecipe(self_reveal_ratio=1.0,
-                                                                             guess_temperature=temperature)).loss
-    torch.manual_seed(5)
-    revealed = reveal_own_predictions(model, x, None, ratio=1.0, temperature=1.0)
-    torch.testing.assert_close(losses[1.0], full_logits_loss(model.eval(), MaskGITBatch(revealed, labels)).loss)
-    assert not torch.allclose(losses[0.0], losses[1.0])
-
-
-@pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "whole_frame_mask_ratio", "clean_prefix_ratio",
-                                   "two_stream_ratio", "two_stream_partial_ratio", "self_reveal_ratio",
-                                   "own_context_ratio", "guess_temperature", "context_noise_ratio",
-                                   "context_noise_max", "bit_loss_weight", "speed_jitter"])
+@pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "self_reveal_ratio"])
 def test_training_ratios_must_be_probabilities(field):
     with pytest.raises(ConfigError, match=f"{field} must be in \\[0, 1\\]"):
-        TrainingRecipe(**{field: 1.5, "speed_jitter_columns": [0]})
-
-
-def test_speed_jitter_needs_valid_columns():
-    with pytest.raises(ConfigError, match="speed_jitter needs speed_jitter_columns"):
-        TrainingRecipe(speed_jitter=0.5)
-    with pytest.raises(ConfigError, match="column indices >= 0"):
-        TrainingRecipe(speed_jitter=0.5, speed_jitter_columns=[0, -1])
-    recipe = TrainingRecipe.from_dict({"speed_jitter": 0.5, "speed_jitter_columns": [0, 5]})
-    assert recipe.speed_jitter_columns == [0, 5] and TrainingRecipe.from_dict(recipe.to_dict()) == recipe
-    with pytest.raises(ConfigError, match="speed_jitter_columns"):
-        TrainingRecipe.from_dict({"speed_jitter": 0.5, "speed_jitter_columns": 5})
-
-
-def test_true_bit_probs_give_a_drawn_tokens_expected_wrong_bits():
-    """sum(1 - true_bit_probs) is the expected Hamming distance of a token drawn from the factors' distributions to
-    the target, here enumerated over every token of a vocabulary of 8 ** 2."""
-    V, N = 8, 5
-    g = torch.Generator().manual_seed(0)
-    logits_NVF = torch.randn(N, V, 2, generator=g) * 2
-    targets_N = torch.randint(0, V * V, (N,), generator=g)
-    tokens = torch.arange(V * V)
-    probs_NVF = logits_NVF.softmax(dim=1)
-    joint_NT = probs_NVF[:, tokens % V, 0] * probs_NVF[:, tokens // V, 1]  # (N, V * V)
-    hamming_NT = torch.stack([torch.tensor([bin(int(t) ^ int(target)).count("1") for t in tokens])
-                              for target in targets_N]).float()
-    p_true_NFJ = metrics.true_bit_probs(logits_NVF, targets_N)
-    assert p_true_NFJ.shape == (N, 2, 3)
-    torch.testing.assert_close((1 - p_true_NFJ).sum(dim=(1, 2)), (joint_NT * hamming_NT).sum(-1))
-    torch.testing.assert_close(objectives.bit_loss(logits_NVF, targets_N), -p_true_NFJ.log().sum(dim=(1, 2)))
-    # a copy head's log-probabilities give the same as the logits they normalize
-    torch.testing.assert_close(metrics.true_bit_probs(logits_NVF.log_softmax(dim=1), targets_N), p_true_NFJ)
-    with pytest.raises(ValueError, match="power-of-two"):
-        metrics.true_bit_probs(torch.zeros(N, 6, 2), targets_N % 36)
-
-
-def test_bit_loss_a_token_bits_away_costs_by_its_wrong_bits_and_a_confident_bit_stays_finite():
-    V = 512
-    target = torch.tensor([5 + 512 * 300])
-    near, far = target ^ 1, target ^ 0b111111111  # one wrong bit; nine wrong bits, both in factor 0
-
-    def confident_on(token):
-        logits_NVF = torch.full((1, V, 2), -30.0)
-        logits_NVF[0, token % V, 0] = logits_NVF[0, token // V, 1] = 30.0
-        return logits_NVF
-
-    losses = [objectives.bit_loss(confident_on(t), target).item() for t in (target, near, far)]
-    assert losses[0] < 1e-6 and 50 < losses[1] < 70 and losses[2] == pytest.approx(9 * losses[1], rel=1e-4)
-
-
-@pytest.mark.parametrize("variant", ["plain", "copy_match"])
-def test_bit_loss_weight_adds_the_bit_loss_in_training_only(variant):
-    model = variant_model(variant)
-    config = model.config
-    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
-    x = labels.masked_fill(torch.rand(labels.shape, generator=torch.Generator().manual_seed(1)) < 0.6,
-                           config.mask_token_id)
-    batch, recipe = MaskGITBatch(x, labels), TrainingRecipe(bit_loss_weight=0.5)
-    reference = full_logits_loss(model.eval(), batch)
-    torch.testing.assert_close(model(batch, recipe).loss, reference.loss)  # evaluation: the CE alone
-    model.train()
-    with_bits = model(batch, recipe)
-    relevant = x == config.mask_token_id
-    relevant[:, 0] = False
-    logits_NVF = rearrange(model.logits(x), "B V F T H W -> (B T H W) V F")[relevant.flatten()]
-    bits = objectives.bit_loss(logits_NVF, labels[relevant]).mean()
-    assert bits > 1
-    torch.testing.assert_close(with_bits.loss, reference.loss + 0.5 * bits)
-    torch.testing.assert_close(with_bits.acc, reference.acc)
-    with_bits.loss.backward()
-    assert model.out_x_proj.weight.grad.abs().sum() > 0
-    if model.copy_head is not None:
-        assert model.copy_head.score_proj.weight.grad.abs().sum() > 0
-
-
-def test_context_noise_input_tells_the_model_each_frames_level_and_is_absent_at_level_zero():
-    config = tiny_config(context_noise_input=True)
-    torch.manual_seed(0)
-    model = STMaskGIT(config)
-    model.init_weights()
-    with torch.no_grad():
-        model.context_noise_embed.normal_()
-    plain = STMaskGIT(tiny_config())  # the same weights without the input: the published layout
-    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k != "context_noise_embed"})
-    assert "context_noise_embed" not in plain.state_dict()
-    model.eval()
-    plain.eval()
-    labels = random_tokens(config, B=2, T=4, mask_rate=0.0)
-    x = random_tokens(config, B=2, T=4, seed=1, mask_rate=0.4)
-    x[:, 0] = labels[:, 0]
-    levels = torch.tensor([[0.0, 0.3, 0.0, 0.6], [0.0, 0.0, 0.5, 0.0]])
-    clean = plain(MaskGITBatch(x, labels)).loss
-    torch.testing.assert_close(model(MaskGITBatch(x, labels)).loss, clean, rtol=0, atol=0)
-    torch.testing.assert_close(model(MaskGITBatch(x, labels, context_noise=torch.zeros(2, 4))).loss, clean)
-    noisy = model(MaskGITBatch(x, labels, context_noise=levels)).loss
-    assert not torch.allclose(noisy, clean)
-    noisy.backward()
-    assert model.context_noise_embed.grad.abs().sum() > 0
-    # the level enters as level * embed on every token of its frame, like an action embedding
-    cond = model.with_context_noise(None, levels)
-    torch.testing.assert_close(cond, levels[..., None] * model.context_noise_embed.detach())
+        TrainingRecipe(**{field: 1.5})
 
 
 def test_one_config_file_holds_architecture_and_recipe_and_legacy_keys_load(tmp_path):
     d = {**tiny_config(qk_norm=True).to_dict(), "max_corrupt_rate": 0.05, "teacher_forced_ratio": 1.0,
-         "self_reveal_ratio": 0.5, "guess_temperature": 1.0}
+         "self_reveal_ratio": 0.5, "guess_temperature": 0.0, "mlp_activation": "gelu"}
     config, recipe = GenieConfig.from_dict(d), TrainingRecipe.from_dict(d)
     assert config == tiny_config(qk_norm=True)
-    assert recipe == TrainingRecipe(max_corrupt_rate=0.05, whole_frame_mask_ratio=1.0, self_reveal_ratio=0.5,
-                                    guess_temperature=1.0)
+    assert recipe == TrainingRecipe(max_corrupt_rate=0.05, masking="whole_frames", self_reveal_ratio=0.5)
+    assert TrainingRecipe.from_dict({"whole_frame_mask_ratio": 0.0}).masking == "published"
+    # a removed experiment loads only at the value that had it off; a former share between 0 and 1 is no scheme
+    for bad, match in (({"guess_temperature": 1.0}, "guess_temperature was a dropped experiment"),
+                       ({"mlp_activation": "swiglu"}, "mlp_activation was a dropped experiment"),
+                       ({"whole_frame_mask_ratio": 0.5}, "whole_frame_mask_ratio 0.5 is no longer supported")):
+        with pytest.raises(ConfigError, match=match):
+            TrainingRecipe.from_dict({**d, **bad})
+        with pytest.raises(ConfigError, match=match):
+            GenieConfig.from_dict({**d, **bad})
     with pytest.raises(ConfigError, match="unknown key"):
         TrainingRecipe.from_dict({**d, "rope": True})
     # a checkpoint saved with its recipe loads as the architecture; the recipe reads back from the same file
@@ -753,7 +504,7 @@ def test_bf16_autocast_forward_runs():
 
 @pytest.mark.parametrize("mask", ["none", "causal", "bool"])
 def test_bf16_cpu_attention_path_matches_fused_fp32(mask):
-    from genie.attention import SelfAttention
+    from genie.transformer import SelfAttention
     torch.manual_seed(0)
     attn = SelfAttention(d_model=32, num_heads=4, qk_norm=True)
     q, k, v = (torch.randn(3, 4, 6, 8, requires_grad=True) for _ in range(3))
@@ -775,51 +526,17 @@ def test_bf16_cpu_attention_path_matches_fused_fp32(mask):
         assert F.cosine_similarity(t.grad.flatten(), grad.flatten(), 0) > 0.99
 
 
-@pytest.mark.parametrize("activation", ["gelu", "relu2", "swiglu"])
-def test_mlp_activation_computes_its_formula_from_fc1_and_fc2(activation):
-    from genie.transformer import Mlp
-    torch.manual_seed(0)
-    mlp = Mlp(16, activation=activation)
-    x = torch.randn(3, 5, 16)
-    h = F.linear(x, mlp.fc1.weight, mlp.fc1.bias)
-    if activation == "gelu":
-        hidden = F.gelu(h)
-    elif activation == "relu2":
-        hidden = h.clamp(min=0) ** 2
-    else:
-        a, b = h[..., :h.shape[-1] // 2], h[..., h.shape[-1] // 2:]
-        hidden = a * torch.sigmoid(a) * b
-    torch.testing.assert_close(mlp(x), F.linear(hidden, mlp.fc2.weight, mlp.fc2.bias))
 
 
-def test_relu2_keeps_the_published_layout_and_swiglu_about_its_size():
-    shapes = {a: {k: tuple(v.shape) for k, v in STMaskGIT(tiny_config(mlp_activation=a)).state_dict().items()}
-              for a in ("gelu", "relu2", "swiglu")}
-    assert shapes["relu2"] == shapes["gelu"]
-    assert shapes["swiglu"].keys() == shapes["gelu"].keys()
-    d, hidden = 32, int(32 * 4 * 2 / 3)
-    assert shapes["swiglu"]["decoder.layers.0.mlp.fc1.weight"] == (2 * hidden, d)
-    assert shapes["swiglu"]["decoder.layers.0.mlp.fc2.weight"] == (d, hidden)
-    sizes = {a: sum(math.prod(s) for s in v.values()) for a, v in shapes.items()}
-    assert abs(sizes["swiglu"] - sizes["gelu"]) < 0.01 * sizes["gelu"]
-
-
-def test_mlp_activation_changes_the_logits_and_survives_a_checkpoint(tmp_path):
-    from genie.checkpoint import save_model
-    config = tiny_config(mlp_activation="relu2")
-    model = sharp_readout_model(config).eval()
-    gelu_model = STMaskGIT(tiny_config()).eval()
-    gelu_model.load_state_dict(model.state_dict())
-    inputs = random_tokens(config, B=1, T=4)
+def test_a_checkpoint_saved_before_the_removals_loads_and_gives_the_same_logits():
+    """tests/fixtures/genie_checkpoint_v307ac4a: a small model with every shipped option (pointer, match input,
+    rotary positions, step-mean actions) saved by the code of commit 307ac4a, whose config.json still lists the
+    removed experiments' keys at their off values, with the logits that code computed for fixed inputs."""
+    path = Path(__file__).parent / "fixtures" / "genie_checkpoint_v307ac4a"
+    model = STMaskGIT.from_pretrained(path)
+    expected = safetensors.torch.load_file(path / "expected_logits.safetensors")
     with torch.no_grad():
-        logits = model.logits(inputs)
-        assert not torch.allclose(gelu_model.logits(inputs), logits)
-        save_model(model, tmp_path / "ckpt")
-        assert json.loads((tmp_path / "ckpt" / "config.json").read_text())["mlp_activation"] == "relu2"
-        loaded = STMaskGIT.from_pretrained(tmp_path / "ckpt").eval()
-        torch.testing.assert_close(loaded.logits(inputs), logits)
-
-
-def test_unknown_mlp_activation_is_a_config_error():
-    with pytest.raises(ConfigError, match="mlp_activation must be one of .*'tanh'"):
-        tiny_config(mlp_activation="tanh")
+        logits = model.logits(expected["tokens"], expected["actions"])
+    torch.testing.assert_close(logits, expected["logits"], atol=1e-6, rtol=1e-5)
+    recipe = TrainingRecipe.from_pretrained(path / "config.json")
+    assert recipe == TrainingRecipe(masking="whole_frames", max_corrupt_rate=0.05, self_reveal_ratio=0.5)

@@ -117,7 +117,7 @@ def test_token_dataset_digests_are_verified_on_demand(tmp_path, capsys):
     ds.validate(full=False)
     with pytest.raises(TokenDatasetError, match=r"video\.bin.*corrupt"):
         ds.validate(full=True)
-    with pytest.raises(SystemExit, match="1 problem"):
+    with pytest.raises(IntegrityError, match="1 problem"):
         data_verify.main([str(data_dir)])
     out = capsys.readouterr().out
     assert "FAILED" in out and "video.bin" in out and "OK" in out  # the intact files are listed as OK

@@ -1,5 +1,6 @@
 """Latent action model: shapes, VQ mechanics, learning a hidden action, checkpoints, probe, and the two CLIs."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -8,6 +9,7 @@ import torch.nn.functional as F
 
 from lam import label as label_latent_actions, train as train_lam
 from lam.probe import action_probe, button_combination_ids, combination_name, transition_labels
+from common.cli import run_main
 from common.config import ConfigError
 from common.images import psnr
 from lam.model import LAM, LAMConfig, VectorQuantizer, local_correlation
@@ -263,19 +265,31 @@ def test_train_lam_cli(tmp_path):
     assert (out_dir / "checkpoint" / "model.safetensors").is_file()
 
 
-def test_train_lam_rejects_bad_data(tmp_path):
+def one_line_error(prog, main, argv, capsys) -> str:
+    """The script's stderr when it stops on bad input: exit status 1, its last line "<prog>: error: ..."."""
+    capsys.readouterr()
+    assert run_main(prog, main, argv) == 1
+    return capsys.readouterr().err.splitlines()[-1]
+
+
+def test_train_lam_rejects_bad_data(tmp_path, capsys):
     np.savez(tmp_path / "bad.npz", frames=np.zeros((4, 16, 16, 3), dtype=np.float32), segment_ids=np.zeros(4))
     # one line naming the file, not a traceback
-    with pytest.raises(SystemExit, match="^lam.train: error: .*bad.npz.*uint8"):
-        train_lam.main(["--train_data", str(tmp_path / "bad.npz"), "--val_data", str(tmp_path / "bad.npz")])
-    with pytest.raises(SystemExit, match="^lam.train: error: frames file not found: .*missing.npz"):
-        train_lam.main(["--train_data", str(tmp_path / "missing.npz")])
+    line = one_line_error("lam.train", train_lam.main,
+                          ["--train_data", str(tmp_path / "bad.npz"), "--val_data", str(tmp_path / "bad.npz")], capsys)
+    assert re.match("^lam.train: error: .*bad.npz.*uint8", line)
+    line = one_line_error("lam.train", train_lam.main, ["--train_data", str(tmp_path / "missing.npz")], capsys)
+    assert re.match("^lam.train: error: frames file not found: .*missing.npz", line)
     np.savez(tmp_path / "no_segments.npz", frames=np.zeros((4, 16, 16, 3), dtype=np.uint8))
-    with pytest.raises(SystemExit, match=r"^lam.train: error: .*no_segments.npz: missing array\(s\) \['segment_ids'\]"):
-        train_lam.main(["--train_data", str(tmp_path / "no_segments.npz")])
+    line = one_line_error("lam.train", train_lam.main, ["--train_data", str(tmp_path / "no_segments.npz")], capsys)
+    assert re.match(r"^lam.train: error: .*no_segments.npz: missing array\(s\) \['segment_ids'\]", line)
+    with pytest.raises(SystemExit):
+        train_lam.parse_args(["--channels", "16,x"])
+    assert "argument --channels: expected comma-separated positive integers such as 16,32,64, got '16,x'" in \
+        capsys.readouterr().err
 
 
-def test_label_latent_actions_cli(tmp_path):
+def test_label_latent_actions_cli(tmp_path, capsys):
     lengths = [25, 12, 3]  # the last segment is shorter than the stride: no transition at all
     write_sample_npz(tmp_path / "frames.npz", lengths)
     n = sum(lengths)
@@ -305,9 +319,11 @@ def test_label_latent_actions_cli(tmp_path):
     assert json.loads((token_dir / "metadata.json").read_text())["num_images"] == n  # left untouched
 
     (token_dir / "metadata.json").write_text(json.dumps({"num_images": n + 1}))
-    with pytest.raises(SystemExit, match="^lam.label: error: .*metadata.json: num_images"):
-        label_latent_actions.main(["--lam_dir", str(tmp_path / "lam"), "--frames", str(tmp_path / "frames.npz"),
-                                   "--token_dir", str(token_dir)])
-    with pytest.raises(SystemExit, match="^lam.label: error: LAM checkpoint directory not found: .*no_lam"):
-        label_latent_actions.main(["--lam_dir", str(tmp_path / "no_lam"), "--frames", str(tmp_path / "frames.npz"),
-                                   "--token_dir", str(token_dir)])
+    line = one_line_error("lam.label", label_latent_actions.main,
+                          ["--lam_dir", str(tmp_path / "lam"), "--frames", str(tmp_path / "frames.npz"),
+                           "--token_dir", str(token_dir)], capsys)
+    assert re.match("^lam.label: error: .*metadata.json: num_images", line)
+    line = one_line_error("lam.label", label_latent_actions.main,
+                          ["--lam_dir", str(tmp_path / "no_lam"), "--frames", str(tmp_path / "frames.npz"),
+                           "--token_dir", str(token_dir)], capsys)
+    assert re.match("^lam.label: error: LAM checkpoint directory not found: .*no_lam", line)

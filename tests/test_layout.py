@@ -32,7 +32,7 @@ def test_no_package_imports_a_higher_layer(package):
 
 SCRIPTS = ["train.py", "evaluate.py", "visualize.py", "genie/generate.py", "genie/baselines.py", "magvit2/train.py",
            "magvit2/tokenize_frames.py", "magvit2/lpips_weights.py", "magvit2/build_sample.py", "data/sample_world.py",
-           "lam/train.py", "lam/label.py"]
+           "lam/train.py", "lam/label.py", "genie/diagnostics.py", "data/verify.py"]
 
 
 def test_every_script_answers_help():
@@ -80,3 +80,15 @@ def test_no_world_trains_on_a_scored_map():
         assert not set(TRAIN_MAPS) & set(maps), f"the default world trains on {name}'s maps"
     assert not set(TRAIN_MAPS) & set(HELDOUT_MAPS)
     assert set(VAL_MAPS) - set(HELDOUT_MAPS) <= set(TRAIN_MAPS) and set(HELDOUT_MAPS) <= set(VAL_MAPS)
+
+
+def test_the_network_loads_without_the_data_side_or_inference():
+    """genie.model (the network and its loss) reads in one sitting: importing it loads neither the data packages nor
+    the collator, the sampler or the inference code."""
+    code = "import sys, genie.model; print(' '.join(sorted(sys.modules)))"
+    loaded = set(subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True,
+                                env={**os.environ, "PYTHONPATH": str(REPO)}).stdout.split())
+    assert "genie.model" in loaded and "genie.transformer" in loaded
+    for module in ("data", "magvit2", "genie.masking", "genie.action_data", "genie.sampling", "genie.inference",
+                   "genie.reference"):
+        assert module not in loaded, f"importing genie.model loads {module}"

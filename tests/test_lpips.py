@@ -13,7 +13,7 @@ from safetensors.torch import save_file
 
 import magvit2.lpips as lpips_mod
 from magvit2.lpips import LPIPS, LPIPSWeightsNotFound, expected_shapes
-from magvit2.lpips_weights import ensure_weights, main as convert_main
+from magvit2.lpips_weights import ConversionError, ensure_weights, main as convert_main
 
 TESTDATA = Path(__file__).resolve().parents[1].parent / "shared" / "testdata" / "lpips"
 
@@ -184,6 +184,6 @@ def test_converter_roundtrip_and_idempotent(tmp_path, capsys):
 
 def test_converter_refuses_code_in_pickle(tmp_path):
     sdist = _fake_sdist(tmp_path / "evil.tar.gz", {"AlexNet_0": os.getcwd})  # a global outside numpy
-    with pytest.raises(SystemExit, match="only numpy arrays"):
+    with pytest.raises(ConversionError, match="only numpy arrays"):
         convert_main(["--sdist", str(sdist), "--out", str(tmp_path / "x.safetensors")])
     assert not (tmp_path / "x.safetensors").exists()

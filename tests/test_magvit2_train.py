@@ -10,6 +10,7 @@ import torch
 from PIL import Image
 from safetensors.torch import load_file, save_file
 
+from common.train_state import TrainingStateError
 from magvit2.config import VQConfig
 from magvit2.lfq import LFQOutput
 from magvit2.lpips import expected_shapes
@@ -143,7 +144,7 @@ def test_bad_frame_sources_are_clear_errors(tmp_path):
         load_frame_array(tmp_path / "wrong_key.npz")
     with pytest.raises(FrameDataError, match="wrong_dtype.npz.*uint8"):
         load_frame_array(tmp_path / "wrong_dtype.npz")
-    with pytest.raises(SystemExit, match="missing.npz: no such file"):
+    with pytest.raises(FrameDataError, match="missing.npz: no such file"):
         main(["--train_data", str(tmp_path / "missing.npz"), "--output_dir", str(tmp_path / "out"), "--no_lpips"])
 
 
@@ -202,7 +203,7 @@ def test_gan_non_saturating_fixed_weight_with_lpips(tmp_path):
 def test_resume_refuses_a_different_architecture(frames_npz, tmp_path):
     out = tmp_path / "run"
     run(_args(frames_npz, out, "--max_train_steps", "1", "--checkpointing_steps", "1"))
-    with pytest.raises(SystemExit, match="different tokenizer config"):
+    with pytest.raises(TrainingStateError, match="different tokenizer config"):
         main(["--train_data", str(frames_npz), "--output_dir", str(out), "--resolution", "16", "--no_lpips",
               "--batch_size", "4", "--resume_from_checkpoint", "latest", "--max_train_steps", "2",
               "--base_channels", "32", "--ch_mult", "1", "1", "--num_res_blocks", "2", "--z_channels", "4"])

@@ -1,11 +1,13 @@
-"""genie/rollout_breakdown.py: windows of evaluate.py --per_window_out grouped by their future's motion."""
+"""python -m genie.diagnostics breakdown (genie/rollout_breakdown.py): the windows of a --per_window_out file grouped
+by their future's motion."""
 import json
 
 import numpy as np
 import pytest
 
 from data import RawTokenDataset, write_token_dataset
-from genie.rollout_breakdown import main
+from common.cli import run_main
+from genie.diagnostics import main
 
 T, P, STRIDE = 6, 2, 2
 
@@ -35,10 +37,13 @@ def world(tmp_path):
 
 
 def run(capsys, data, per_window, *extra):
-    code = main([str(per_window), "--val_data_dir", str(data), "--num_prompt_frames", str(P), "--stride",
-                 str(STRIDE), *extra])
+    code = run_main("genie.diagnostics", main, ["breakdown", str(per_window), "--val_data_dir", str(data),
+                                                "--num_prompt_frames", str(P), "--stride", str(STRIDE), *extra])
     captured = capsys.readouterr()
-    return code, (json.loads(captured.out.strip().splitlines()[-1]) if code == 0 else captured.err)
+    if code:  # one error line, no traceback
+        assert "Traceback" not in captured.err and captured.out == ""
+        return code, captured.err.strip().splitlines()[-1]
+    return code, json.loads(captured.out.strip().splitlines()[-1])
 
 
 def test_windows_are_grouped_by_the_size_of_their_future_turns(world, capsys):

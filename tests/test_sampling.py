@@ -7,7 +7,7 @@ from einops import rearrange
 
 from genie.factorization import unfactorize_token_ids
 from genie.sampling import Prediction, maskgit_sample, sample_factored_tokens, sample_mixture_tokens
-from genie.schedule import num_masked_after_step
+from genie.sampling import num_masked_after_step
 
 V, F_ = 8, 2
 MASK = V ** F_

@@ -1,5 +1,6 @@
 """magvit2.tokenize_frames: frames + actions + segment ids -> token dataset that data.RawTokenDataset reads back."""
 import json
+import os
 
 import numpy as np
 import pytest
@@ -8,7 +9,7 @@ from PIL import Image
 
 from data import RawTokenDataset
 from magvit2 import VQConfig, VQModel
-from magvit2.tokenize_frames import main, tokenize_frames
+from magvit2.tokenize_frames import TokenizeInputError, main, tokenize_frames
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +54,7 @@ def test_npz_episodes_round_trip(tmp_path, tokenizer_dir):
     # windows never cross segments
     assert len(ds) == 2 + 1 + 1 + 3
 
-    with pytest.raises(SystemExit, match="--overwrite"):
+    with pytest.raises(TokenizeInputError, match="--overwrite"):
         main([str(tmp_path / "ep_b.npz"), "--tokenizer_ckpt", str(tokenizer_dir), "--output_dir", str(out),
               "--device", "cpu"])
     main([str(tmp_path / "ep_b.npz"), "--tokenizer_ckpt", str(tokenizer_dir), "--output_dir", str(out),
@@ -82,9 +83,9 @@ def test_inconsistent_inputs_are_errors_naming_the_file(tmp_path, tokenizer_dir)
     np.savez(tmp_path / "b.npz", frames=frames(3, 5), actions_y=np.zeros((3, 2)))
     np.savez(tmp_path / "odd.npz", frames=frames(3, 6, side=15))
     base = ["--tokenizer_ckpt", str(tokenizer_dir), "--device", "cpu"]
-    with pytest.raises(SystemExit, match="b.npz.*actions"):
+    with pytest.raises(TokenizeInputError, match="b.npz.*actions"):
         main([str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--output_dir", str(tmp_path / "o1"), *base])
-    with pytest.raises(SystemExit, match="odd.npz.*not divisible"):
+    with pytest.raises(TokenizeInputError, match="odd.npz.*not divisible"):
         main([str(tmp_path / "odd.npz"), "--output_dir", str(tmp_path / "o2"), *base])
     assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
 
@@ -99,46 +100,30 @@ def test_tokenize_frames_in_memory(tmp_path, tokenizer_dir):
     assert len(ds) == 1 + 2 and ds.metadata["hz"] == 15 and ds.metadata["tokenizer_ckpt"] == "my_tok"
 
 
-def test_build_sample_mirror_adds_the_flipped_walks_after_the_rendered_ones(tmp_path, tokenizer_dir, capsys):
-    """build_sample --mirror: the training split is the rendered walks, then the same walks mirrored, each frame's
-    tokens those of the flipped frame, with the turns swapped; a second build is a no-op, a build without the
-    mirror re-tokenizes."""
-    from data.sample_world import BUTTON_NAMES
-    from magvit2.build_sample import tokenize_split, write_mirror
+def test_build_sample_tokenizes_a_split_once(tmp_path, tokenizer_dir, capsys):
+    """build_sample's tokenize_split: the split's frames become its tokens, with segments and actions; a second build
+    is a no-op, and new raw frames are tokenized again."""
+    from magvit2.build_sample import tokenize_split
 
     n = 6
-    buttons = np.zeros((n, len(BUTTON_NAMES)), np.float32)
-    buttons[:3, BUTTON_NAMES.index("TURN_LEFT")] = 1
     raw = tmp_path / "train.npz"
-    np.savez(raw, frames=frames(n, 3), segment_ids=np.array([0, 0, 0, 1, 1, 1], np.int32), actions_buttons=buttons,
-             actions_driving_command=np.tile(np.float32([[60.0, 0.5]]), (n, 1)), poses=np.zeros((n, 3), np.float32),
-             hz=np.int32(35))
-    mirror = tmp_path / "train_mirror.npz"
-    write_mirror(raw, mirror, overwrite=False)
+    np.savez(raw, frames=frames(n, 3), segment_ids=np.array([0, 0, 0, 1, 1, 1], np.int32),
+             actions_buttons=np.eye(n, 5, dtype=np.float32), hz=np.int32(35))
     out = tmp_path / "train"
-    tokenize_split([raw, mirror], out, tokenizer_dir, "tiny", batch_size=4, device="cpu", overwrite=False)
-
-    ds = RawTokenDataset(out, window_size=1, stride=1)
-    assert ds.metadata["num_images"] == 2 * n
-    segments = np.fromfile(out / "segment_ids.bin", dtype=np.int32)
-    assert segments.tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3]  # mirrored walks are walks of their own
+    tokenize_split([raw], out, tokenizer_dir, "tiny", batch_size=4, device="cpu", overwrite=False)
     model = VQModel.from_checkpoint(tokenizer_dir).eval()
-    video = np.fromfile(out / "video.bin", dtype=np.uint32).reshape(2 * n, -1)
+    video = np.fromfile(out / "video.bin", dtype=np.uint32).reshape(n, -1)
     with np.load(raw) as npz:
-        expected = model.images_to_tokens(np.ascontiguousarray(npz["frames"][:, :, ::-1]), batch_size=4)
-        straight = model.images_to_tokens(npz["frames"], batch_size=4)
-    np.testing.assert_array_equal(video[n:], np.asarray(expected).reshape(n, -1))
-    assert not np.array_equal(video[:n], video[n:])
-    np.testing.assert_array_equal(video[:n], np.asarray(straight).reshape(n, -1))
-    turns = np.fromfile(out / "actions" / "buttons.bin", dtype=np.float32).reshape(2 * n, -1)
-    assert turns[n:n + 3, BUTTON_NAMES.index("TURN_RIGHT")].tolist() == [1, 1, 1]
-    assert turns[n:, BUTTON_NAMES.index("TURN_LEFT")].sum() == 0
-    angular = np.fromfile(out / "actions" / "driving_command.bin", dtype=np.float32).reshape(2 * n, 2)[:, 1]
-    assert angular[:n].tolist() == [0.5] * n and angular[n:].tolist() == [-0.5] * n
+        np.testing.assert_array_equal(video, np.asarray(model.images_to_tokens(npz["frames"])).reshape(n, -1))
+    assert np.fromfile(out / "segment_ids.bin", dtype=np.int32).tolist() == [0, 0, 0, 1, 1, 1]
+    buttons = np.fromfile(out / "actions" / "buttons.bin", dtype=np.float32).reshape(n, 5)
+    np.testing.assert_array_equal(buttons, np.eye(n, 5))
 
     capsys.readouterr()
-    write_mirror(raw, mirror, overwrite=False)
-    tokenize_split([raw, mirror], out, tokenizer_dir, "tiny", batch_size=4, device="cpu", overwrite=False)
-    assert capsys.readouterr().out.count("up to date") == 2
     tokenize_split([raw], out, tokenizer_dir, "tiny", batch_size=4, device="cpu", overwrite=False)
-    assert RawTokenDataset(out, window_size=1, stride=1).metadata["num_images"] == n
+    assert "up to date" in capsys.readouterr().out
+    np.savez(raw, frames=frames(n, 4), segment_ids=np.zeros(n, np.int32), hz=np.int32(35))
+    os.utime(raw, (1, 1))  # another mtime, whatever the clock's resolution
+    tokenize_split([raw], out, tokenizer_dir, "tiny", batch_size=4, device="cpu", overwrite=False)
+    assert "tokenized" in capsys.readouterr().out
+    assert np.fromfile(out / "segment_ids.bin", dtype=np.int32).tolist() == [0] * n

@@ -10,6 +10,8 @@ import torch
 from PIL import Image
 
 import visualize
+from common.cli import run_main
+from common.errors import InputError
 from data import write_token_dataset
 from magvit2 import VQConfig, VQModel
 
@@ -86,17 +88,17 @@ def test_frames_labelled_with_an_action_stream(tmp_path, tokenizer_dir):
     assert len(strips) == 4
     assert np.array_equal(strips[1], strips[3])  # same label, same text
     assert not np.array_equal(strips[0], strips[1]) and not np.array_equal(strips[1], strips[2])
-    with pytest.raises(SystemExit, match="nope.bin.*latent_action"):
+    with pytest.raises(InputError, match="nope.bin.*latent_action"):
         visualize.main(args + ["--label_action", "nope"])
 
 
-def test_missing_checkpoint_error_names_the_options(tmp_path, monkeypatch):
+def test_missing_checkpoint_error_names_the_options(tmp_path, monkeypatch, capsys):
     token_dir = tmp_path / "dataset"
     write_token_dataset(token_dir, random_tokens(3), metadata={"vocab_size": 64, "tokenizer_ckpt": "gone.ckpt"})
     monkeypatch.chdir(tmp_path)  # no data/magvit2.ckpt here
-    with pytest.raises(SystemExit) as info:
-        visualize.main(["--token_dir", str(token_dir), "--device", "cpu"])
-    message = str(info.value)
+    assert run_main("visualize.py", visualize.main, ["--token_dir", str(token_dir), "--device", "cpu"]) == 1
+    message = capsys.readouterr().err.splitlines()[-1]  # one line, no traceback
+    assert message.startswith("visualize.py: error: ")
     assert "--tokenizer_ckpt" in message and "gone.ckpt" in message and "data/magvit2.ckpt" in message
 
 

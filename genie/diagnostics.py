@@ -1,0 +1,275 @@
+"""Diagnostics of a dynamics model's futures, scored like evaluate.py's protocols (genie/evaluation.py): one
+subcommand each (`python -m genie.diagnostics SUBCOMMAND --help` explains it and its flags), one JSON line on stdout
+(the last line; progress goes to stderr).
+
+    python -m genie.diagnostics copy_ceiling --ceiling_block 8 --max_examples 48 --spread_examples
+    python -m genie.diagnostics per_window --per_window_out windows.jsonl --max_examples 48 --spread_examples
+    python -m genie.diagnostics breakdown windows.jsonl --val_data_dir data/sample/val --column 1
+    python -m genie.diagnostics withheld_actions --protocol rollout --max_examples 48
+"""
+import argparse
+import functools
+import json
+import logging
+import sys
+
+import torch
+from tqdm import tqdm
+
+from common.cli import apply_cpu_settings, resolve_device, run_main, setup_logging
+from common.errors import DataMismatchError
+from genie.copy_ceiling import ceiling_rollout
+from genie.evaluation import (EvaluationError, add_per_window_arg, add_prompt_arg, add_protocol_args,
+                              add_save_outputs_arg, add_window_args, add_rollout_scores, check_per_window_arg,
+                              check_prompt_arg, check_protocol_args, check_single_process, check_window_args,
+                              frame_scorer, load_model, model_windows, rollout_evaluate, rollout_result,
+                              teacher_forced_run, windows_dataset, windows_loader, write_per_window)
+from genie.rollout_breakdown import breakdown, describe
+
+logger = logging.getLogger("genie.diagnostics")
+
+PROG = "python -m genie.diagnostics"
+
+COPY_CEILING_DOC = """\
+The rollout protocol's windows, prompt and scores, with the generated frames replaced by the best futures made
+only of whole-token copies, chosen knowing the true frames (genie/copy_ceiling.py); no checkpoint is read. Each
+token is copied from a neighbour within --ceiling_radius positions in the ceiling's own frame before, one
+displacement per --ceiling_block x --ceiling_block tile of positions: how good the previous-frame pointer's copies
+could be. The JSON line has the rollout protocol's keys (protocol "copy_ceiling"; rollout_* are the ceiling's
+frames; gen_time null) without the sampler's, plus radius, block and exact_share (the share of the ceiling's tokens
+that are the true ones)."""
+
+PER_WINDOW_DOC = """\
+evaluate.py's rollout protocol (the same flags and JSON line) that also writes each window's own per-horizon
+lists to --per_window_out, one JSON line per window with where it lies in the dataset (window, first_frame,
+segment_id), so that the scores can be split by what happens in each window (its actions, its map; `breakdown`)."""
+
+BREAKDOWN_DOC = """\
+A --per_window_out file's windows cut into --bins groups of equal size by one number: the mean absolute value of
+one action column over the window's generated frames (each row the mean over its window step; the sample world's
+driving_command column 1 is the turn rate, column 0 the forward speed). Each group's futures are compared with
+holding the last prompt frame per horizon (genie/rollout_breakdown.py): a mean over all windows can hide a group of
+windows where the futures lose to holding; this shows which motion it is. One readable line per group goes to
+stderr; the JSON line is {"stream", "column", "groups": [{"low", "high", "num_windows", "psnr_gain" (dB per
+horizon), "psnr_gain_mean", "lpips_rollout", "lpips_hold" (null when the file has no LPIPS)}, ...]}."""
+
+WITHHELD_ACTIONS_DOC = """\
+evaluate.py's protocols (the same flags) on a model with action inputs that is given none: every frame gets the
+learned "no action" input that training's action dropout teaches, to measure what the model predicts from the
+frames alone; the dataset needs no action streams. The JSON line is the protocol's, without the latent-action
+metrics (delta_psnr, the probe), plus "actions_withheld": true."""
+
+
+def start(args: argparse.Namespace) -> torch.device:
+    """The process set-up of a diagnostic that scores futures, as evaluate.py's: one process, --device,
+    --num_threads, --seed."""
+    check_single_process()
+    device = resolve_device(args.device)
+    apply_cpu_settings(args.num_threads)
+    torch.manual_seed(args.seed)
+    return device
+
+
+# ------------------------------------------------------------------ copy_ceiling
+@torch.no_grad()
+def copy_ceiling_evaluate(loader, args: argparse.Namespace, device: torch.device, scorer, num_bits: int,
+                          per_window=None) -> dict:
+    """The copy ceiling's JSON line over `loader` (module doc): the rollout protocol's scores of
+    genie.copy_ceiling.ceiling_rollout's frames (each window's own appended to `per_window` when a list)."""
+    P, with_lpips = args.num_prompt_frames, not args.skip_lpips
+    sums, num_examples, exact, num_tokens = {}, 0, 0, 0
+    for batch in _progress(loader, "copy ceiling"):
+        x_BTHW = batch["tokens"].to(device).long()
+        tokens_BTHW, exact_B = ceiling_rollout(x_BTHW, P, args.ceiling_radius, args.ceiling_block, num_bits)
+        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips, per_window)
+        num_examples += x_BTHW.shape[0]
+        exact += int(exact_B.sum())
+        num_tokens += tokens_BTHW[:, P:].numel()
+    result = rollout_result(sums, num_examples, P, None)
+    return {**result, "protocol": "copy_ceiling", "radius": args.ceiling_radius, "block": args.ceiling_block,
+            "exact_share": exact / max(num_tokens, 1)}
+
+
+def _progress(loader, desc: str):
+    return tqdm(loader, desc=desc, unit="batch", file=sys.stderr)
+
+
+def run_copy_ceiling(args: argparse.Namespace) -> dict:
+    device = start(args)
+    dataset = windows_dataset(args)
+    h, w = dataset.metadata["h"], dataset.metadata["w"]
+    if h % args.ceiling_block or w % args.ceiling_block:
+        raise EvaluationError(f"--ceiling_block {args.ceiling_block} does not divide the {h} x {w} token frames of "
+                              f"{args.val_data_dir}")
+    indices, loader = windows_loader(dataset, args)
+    logger.info("copy ceiling of %d windows of %s (radius %d, block %d)", len(indices), args.val_data_dir,
+                args.ceiling_radius, args.ceiling_block)
+    num_bits = (int(dataset.metadata["vocab_size"]) - 1).bit_length()
+    per_window = [] if args.per_window_out else None
+    scorer = frame_scorer(args, dataset, device, "copy_ceiling")
+    result = copy_ceiling_evaluate(loader, args, device, scorer, num_bits, per_window)
+    if per_window is not None:
+        write_per_window(args.per_window_out, per_window, dataset, indices)
+    return result
+
+
+def add_copy_ceiling_parser(subparsers) -> None:
+    parser = _subparser(subparsers, "copy_ceiling", "the rollout protocol's scores of the best futures made only of "
+                                                    "copies of the frame before's nearby tokens (no checkpoint)",
+                        COPY_CEILING_DOC)
+    add_window_args(parser, checkpoint=False)
+    add_prompt_arg(parser)
+    parser.add_argument("--ceiling_radius", type=int, default=2,
+                        help="Copies come from neighbours at most this many positions away in each direction, >= 0 "
+                             "(default: %(default)s; a pointer's copy_radius; 0 holds the last prompt frame).")
+    parser.add_argument("--ceiling_block", type=int, default=1,
+                        help="Positions in each block x block tile share one displacement, >= 1 (default: "
+                             "%(default)s: every position its own; the frame's side: one shift of the whole frame). "
+                             "Must divide the frame's height and width in tokens.")
+    add_per_window_arg(parser, "Also ")
+    parser.set_defaults(check=functools.partial(check_copy_ceiling, parser), run=run_copy_ceiling)
+
+
+def check_copy_ceiling(parser, args: argparse.Namespace) -> None:
+    check_window_args(parser, args)
+    if args.ceiling_radius < 0 or args.ceiling_block < 1:
+        parser.error(f"--ceiling_radius must be >= 0 and --ceiling_block >= 1, got {args.ceiling_radius} and "
+                     f"{args.ceiling_block}")
+    check_prompt_arg(parser, args)
+    check_per_window_arg(parser, args)
+
+
+# ------------------------------------------------------------------ per_window
+def run_per_window(args: argparse.Namespace) -> dict:
+    device = start(args)
+    model = load_model(args, device)
+    dataset, indices, loader = model_windows(model, args)
+    per_window = []
+    result = rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device, "rollout"),
+                              per_window)
+    write_per_window(args.per_window_out, per_window, dataset, indices)
+    return result
+
+
+def add_per_window_parser(subparsers) -> None:
+    parser = _subparser(subparsers, "per_window", "evaluate.py's rollout protocol, also writing each window's own "
+                                                  "scores to --per_window_out", PER_WINDOW_DOC)
+    add_window_args(parser)
+    add_prompt_arg(parser)
+    add_per_window_arg(parser, "Required: ", required=True)
+    parser.set_defaults(check=functools.partial(check_per_window, parser), run=run_per_window)
+
+
+def check_per_window(parser, args: argparse.Namespace) -> None:
+    check_window_args(parser, args)
+    check_prompt_arg(parser, args)
+    check_per_window_arg(parser, args)
+
+
+# ------------------------------------------------------------------ breakdown
+def run_breakdown(args: argparse.Namespace) -> dict:
+    result = breakdown(args.per_window, args.val_data_dir, args.stream, args.column, args.bins,
+                       args.num_prompt_frames, args.stride)
+    for line in describe(result):
+        print(line, file=sys.stderr)
+    return result
+
+
+def add_breakdown_parser(subparsers) -> None:
+    parser = _subparser(subparsers, "breakdown", "a --per_window_out file's windows in groups by the walker's "
+                                                 "motion in their futures: the PSNR gain over holding of each group",
+                        BREAKDOWN_DOC)
+    parser.add_argument("per_window", help="The JSON Lines file of per_window's (or copy_ceiling's, or "
+                                           "withheld_actions') --per_window_out.")
+    parser.add_argument("--val_data_dir", required=True,
+                        help="Required: the token dataset that the run which wrote the file scored.")
+    parser.add_argument("--stream", default="driving_command",
+                        help="Action stream that places each window (default: %(default)s).")
+    parser.add_argument("--column", type=int, default=1,
+                        help="Column of --stream (the sample world's driving_command: 0 forward speed, 1 turn rate; "
+                             "default: %(default)s).")
+    parser.add_argument("--bins", type=int, default=3,
+                        help="Groups of equal size to cut the windows into (default: %(default)s).")
+    parser.add_argument("--num_prompt_frames", type=int, default=8,
+                        help="The --num_prompt_frames of the run that wrote the file (default: %(default)s).")
+    parser.add_argument("--stride", type=int, default=15,
+                        help="The --stride of the run that wrote the file (default: %(default)s).")
+    parser.set_defaults(check=functools.partial(check_breakdown, parser), run=run_breakdown)
+
+
+def check_breakdown(parser, args: argparse.Namespace) -> None:
+    for name in ("bins", "num_prompt_frames", "stride"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+
+
+# ------------------------------------------------------------------ withheld_actions
+def run_withheld_actions(args: argparse.Namespace) -> dict:
+    device = start(args)
+    model = load_model(args, device)
+    if not model.config.uses_actions:
+        raise DataMismatchError(f"withheld_actions: the checkpoint {args.checkpoint_dir} takes no actions to "
+                                f"withhold (evaluate.py scores it as it is)")
+    dataset, indices, loader = model_windows(model, args, withhold_actions=True)
+    if args.protocol == "rollout":
+        per_window = [] if args.per_window_out else None
+        scorer = frame_scorer(args, dataset, device, "rollout")
+        result = rollout_evaluate(model, loader, args, device, scorer, per_window, withhold_actions=True)
+        if per_window is not None:
+            write_per_window(args.per_window_out, per_window, dataset, indices)
+    else:
+        with torch.no_grad():
+            result, _ = teacher_forced_run(model, loader, dataset, args, device, withhold_actions=True)
+    return {**result, "actions_withheld": True}
+
+
+def add_withheld_actions_parser(subparsers) -> None:
+    parser = _subparser(subparsers, "withheld_actions", "evaluate.py's protocols on an action model given no "
+                                                        "actions (every frame gets the learned 'no action' input)",
+                        WITHHELD_ACTIONS_DOC)
+    add_protocol_args(parser)
+    add_window_args(parser)
+    add_save_outputs_arg(parser)
+    add_per_window_arg(parser, "Rollout protocol only: also ")
+    parser.set_defaults(check=functools.partial(check_withheld_actions, parser), run=run_withheld_actions)
+
+
+def check_withheld_actions(parser, args: argparse.Namespace) -> None:
+    check_window_args(parser, args)
+    check_protocol_args(parser, args)
+
+
+# ------------------------------------------------------------------ command line
+def _subparser(subparsers, name: str, summary: str, description: str) -> argparse.ArgumentParser:
+    return subparsers.add_parser(name, help=summary, description=description,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="SUBCOMMAND",
+                                       help="the diagnostic to run (`%(prog)s SUBCOMMAND --help` lists its flags)")
+    add_copy_ceiling_parser(subparsers)
+    add_per_window_parser(subparsers)
+    add_breakdown_parser(subparsers)
+    add_withheld_actions_parser(subparsers)
+    return parser
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.check(args)
+    return args
+
+
+def main(argv=None) -> int:
+    setup_logging()
+    args = parse_args(argv)
+    print(json.dumps(args.run(args)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_main("genie.diagnostics", main))
