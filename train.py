@@ -50,9 +50,9 @@ import genie.configs
 from common.cli import (NO_NATIVE_BF16, add_num_threads_arg, apply_cpu_settings, check_optimizer_args,
                         cpu_has_native_bf16, finite_float, setup_logging)
 from common.ema import WeightAverage
-from common.errors import CheckpointError, DataMismatchError, TrainingError, WriteError
+from common.errors import InputError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
-from data import RawTokenDataset, TokenDatasetError
+from data import RawTokenDataset
 from genie.action_data import action_statistics, latent_action_sidecar, prepare_action_streams, stream_dims
 from genie.checkpoint import load_state_dict_checked
 from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
@@ -684,11 +684,8 @@ def main(argv=None) -> None:
     try:
         run(args)
     except WriteError as e:  # full disk / I/O error: say what failed and where the run can resume from
-        logger.error("%s", e)
         sys.exit(f"train.py: error: {e}; {resume_hint(args.output_dir)}")
-    except (TrainingError, TrainingStateError, CheckpointError, ConfigError, DataMismatchError, TokenDatasetError,
-            OSError) as e:
-        logger.error("%s", e)
+    except (InputError, TrainingError, OSError) as e:  # bad input, or a run that cannot go on: one line
         sys.exit(f"train.py: error: {e}")
 
 

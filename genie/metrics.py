@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from einops import rearrange
 
-from genie.factorization import factor_value_bits, factorize_token_ids
+from genie.factorization import factorize_token_ids
 
 
 def factored_cross_entropy(logits_BVF: torch.Tensor, targets_B: torch.Tensor) -> torch.Tensor:
@@ -29,20 +29,6 @@ def factored_argmax_correct(logits_BVF: torch.Tensor, targets_B: torch.Tensor) -
     V, F_ = logits_BVF.shape[1], logits_BVF.shape[2]
     factors_BF = torch.movedim(factorize_token_ids(targets_B, F_, V), -1, 1)
     return (logits_BVF.argmax(dim=1) == factors_BF).all(dim=1)
-
-
-def true_bit_probs(factored_NVF: torch.Tensor, targets_N: torch.Tensor) -> torch.Tensor:
-    """(N, F, J): for bit j of factor f, the probability that the prediction's factor f has that bit equal to the
-    target's. factored_NVF: (N, V, F) logits (or a copy head's log-probabilities: the softmax over V is the same),
-    V = 2^J; targets_N: (N,) token ids."""
-    V, F_ = factored_NVF.shape[1], factored_NVF.shape[2]
-    bits_VJ = factor_value_bits(V, factored_NVF.device)
-    probs_NVF = factored_NVF.float().softmax(dim=1)
-    # each bit's two values summed separately: 1 - p(one) would round a confident bit's small side to zero
-    p_one_NFJ = torch.einsum("nvf,vj->nfj", probs_NVF, bits_VJ)
-    p_zero_NFJ = torch.einsum("nvf,vj->nfj", probs_NVF, 1 - bits_VJ)
-    target_one_NFJ = bits_VJ[factorize_token_ids(targets_N, F_, V)].bool()
-    return torch.where(target_one_NFJ, p_one_NFJ, p_zero_NFJ)
 
 
 def token_accuracy(samples: torch.Tensor, targets: torch.Tensor) -> float:

@@ -7,7 +7,6 @@ import pytest
 import safetensors.torch
 import torch
 import torch.nn.functional as F
-from einops import rearrange
 
 import genie
 from common.config import ConfigError

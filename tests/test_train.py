@@ -1,7 +1,6 @@
 """train.py on CPU with a tiny model: learning, checkpoints (round trip, in-process resume), data order, errors."""
 import json
 import math
-import shutil
 
 import numpy as np
 import pytest
