@@ -4,8 +4,6 @@ tests/test_copy_ceiling.py, the breakdown's in tests/test_rollout_breakdown.py."
 import argparse
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -13,6 +11,7 @@ import torch
 
 import evaluate
 import genie.evaluation
+from tests.cli_runner import run_as_main
 import genie.generate
 from common.cli import run_main
 from data import RawTokenDataset, write_token_dataset
@@ -172,14 +171,14 @@ def test_bad_input_ends_the_command_in_one_line(tiny, tmp_path):
     """As `python -m genie.diagnostics`: a usage error (exit status 2) and a missing dataset (1) end in one error
     line, no traceback."""
     env = {k: v for k, v in os.environ.items() if k != "WORLD_SIZE"}
-    for argv, code, message in [
-            (["breakdown", "windows.jsonl"], 2,
-             "python -m genie.diagnostics breakdown: error: the following arguments are required: --val_data_dir"),
-            (["copy_ceiling", "--val_data_dir", str(tmp_path / "missing"), "--skip_lpips"], 1,
-             f"genie.diagnostics: error: {tmp_path / 'missing'}"),
-            ([], 2, "python -m genie.diagnostics: error: the following arguments are required: SUBCOMMAND")]:
-        proc = subprocess.run([sys.executable, "-m", "genie.diagnostics", *argv], capture_output=True, text=True,
-                              cwd=REPO, env=env, timeout=300)
+    cases = [(["breakdown", "windows.jsonl"], 2,
+              "python -m genie.diagnostics breakdown: error: the following arguments are required: --val_data_dir"),
+             (["copy_ceiling", "--val_data_dir", str(tmp_path / "missing"), "--skip_lpips"], 1,
+              f"genie.diagnostics: error: {tmp_path / 'missing'}"),
+             ([], 2, "python -m genie.diagnostics: error: the following arguments are required: SUBCOMMAND")]
+    ran = run_as_main({i: ("genie.diagnostics", argv) for i, (argv, _, _) in enumerate(cases)}, env=env)
+    for i, (argv, code, message) in enumerate(cases):
+        proc = ran[i]
         assert proc.returncode == code and proc.stdout == ""
         assert error_line(proc.stderr).startswith(message), proc.stderr
 

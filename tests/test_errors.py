@@ -1,17 +1,17 @@
 """Bad input ends every command in one line on stderr, "<prog>: error: <what is wrong>", a non-zero exit status and
 no traceback (common.cli.run_main for bad files and checkpoints, argparse for bad flag values).
 
-One subprocess per entry point (its `__main__` wiring is what is under test; the imports are the slow part), the
-remaining benchmarks' flags in-process."""
+Every entry point runs as its `__main__` (its wiring is what is under test), all of them in one subprocess, since
+the imports are the slow part (`run_as_main`); the remaining benchmarks' flags in-process."""
 import importlib.util
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from common.cli import run_main
+from tests.cli_runner import run_as_main
 from common.errors import InputError, TrainingError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -19,10 +19,6 @@ BENCHMARKS = REPO / "benchmarks"
 HAVE_VIZDOOM = importlib.util.find_spec("vizdoom") is not None
 # Without ViZDoom only the form of a map name can be checked: MAP99 would pass, MAP_9 never does.
 UNKNOWN_MAP = "MAP99" if HAVE_VIZDOOM else "MAP_9"
-
-
-def run(*argv) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, *map(str, argv)], cwd=REPO, capture_output=True, text=True, timeout=300)
 
 
 def error_line(proc: subprocess.CompletedProcess, prog: str) -> str:
@@ -44,79 +40,95 @@ def usage_error(proc: subprocess.CompletedProcess, prog: str) -> str:
 def bad_files(tmp_path_factory):
     root = tmp_path_factory.mktemp("bad")
     np.savez(root / "float_frames.npz", frames=np.zeros((4, 16, 16, 3), np.float32))
+    np.savez(root / "frames.npz", frames=np.zeros((2, 16, 16, 3), np.uint8))
     (root / "not_a_tarball.tar.gz").write_bytes(b"not a tarball")
     (root / "empty_dir").mkdir()
+    (root / "sample_world_out").mkdir()
     return root
 
 
-# ---------------------------------------------------------------- one subprocess per entry point
+@pytest.fixture(scope="module")
+def ran(bad_files):
+    """Every entry point's bad-input run (in one interpreter), by name."""
+    b = bad_files
+    return run_as_main({
+        "build_sample": ("magvit2.build_sample", ["--train_maps", "MAP01", UNKNOWN_MAP]),
+        "sample_world": ("data.sample_world", ["--output_dir", b / "sample_world_out", "--val_maps", "E9M9"]),
+        "visualize": ("visualize.py", ["--token_dir", b / "missing"]),
+        "lam_train": ("lam.train", ["--train_data", b / "missing.npz"]),
+        "lam_label": ("lam.label", ["--lam_dir", b / "empty_dir", "--frames", "x.npz", "--token_dir", "tokens"]),
+        "magvit2_train": ("magvit2.train", ["--train_data", b / "float_frames.npz", "--output_dir", b / "out",
+                                            "--no_lpips"]),
+        "tokenize_frames": ("magvit2.tokenize_frames", [b / "frames.npz", "--tokenizer_ckpt", b / "empty_dir",
+                                                        "--output_dir", b / "tokens"]),
+        "lpips_weights": ("magvit2.lpips_weights", ["--sdist", b / "not_a_tarball.tar.gz", "--out",
+                                                    b / "lpips.safetensors"]),
+        "verify": ("data.verify", [b / "missing"]),
+        "baselines": ("genie.baselines", ["--train_data_dir", b / "empty_dir", "--val_data_dir", b / "empty_dir"]),
+        "bench_dataset_index.py": (BENCHMARKS / "bench_dataset_index.py", ["--num_frames", "-5"]),
+        "bench_tokenizer_train.py": (BENCHMARKS / "bench_tokenizer_train.py", ["--ch_mult", "1", "0"]),
+    })
 
-def test_build_sample_names_an_unknown_map():
-    line = usage_error(run("-m", "magvit2.build_sample", "--train_maps", "MAP01", UNKNOWN_MAP), "build_sample.py")
+
+# ---------------------------------------------------------------- each entry point as __main__
+
+def test_build_sample_names_an_unknown_map(ran):
+    line = usage_error(ran["build_sample"], "build_sample.py")
     assert f"argument --train_maps: unknown map '{UNKNOWN_MAP}'" in line
 
 
-def test_sample_world_names_an_unknown_map(tmp_path):
-    line = usage_error(run("-m", "data.sample_world", "--output_dir", tmp_path, "--val_maps", "E9M9"),
-                       "sample_world.py")
-    assert "argument --val_maps: unknown map 'E9M9'" in line
-    assert not list(tmp_path.iterdir())  # nothing rendered
+def test_sample_world_names_an_unknown_map(ran, bad_files):
+    assert "argument --val_maps: unknown map 'E9M9'" in usage_error(ran["sample_world"], "sample_world.py")
+    assert not list((bad_files / "sample_world_out").iterdir())  # nothing rendered
 
 
-def test_visualize_names_a_missing_token_dir(tmp_path):
-    line = error_line(run("visualize.py", "--token_dir", tmp_path / "missing"), "visualize.py")
-    assert f"{tmp_path / 'missing'}: token dataset directory not found" in line
+def test_visualize_names_a_missing_token_dir(ran, bad_files):
+    line = error_line(ran["visualize"], "visualize.py")
+    assert f"{bad_files / 'missing'}: token dataset directory not found" in line
 
 
-def test_lam_train_names_a_missing_frames_file(tmp_path):
-    line = error_line(run("-m", "lam.train", "--train_data", tmp_path / "missing.npz"), "lam.train")
-    assert f"frames file not found: {tmp_path / 'missing.npz'}" in line
+def test_lam_train_names_a_missing_frames_file(ran, bad_files):
+    assert f"frames file not found: {bad_files / 'missing.npz'}" in error_line(ran["lam_train"], "lam.train")
 
 
-def test_lam_label_names_a_directory_that_is_no_lam(bad_files):
-    line = error_line(run("-m", "lam.label", "--lam_dir", bad_files / "empty_dir", "--frames", "x.npz",
-                          "--token_dir", "tokens"), "lam.label")
+def test_lam_label_names_a_directory_that_is_no_lam(ran, bad_files):
+    line = error_line(ran["lam_label"], "lam.label")
     assert f"LAM config file not found: {bad_files / 'empty_dir' / 'config.json'}" in line
 
 
-def test_magvit2_train_names_frames_of_the_wrong_dtype(bad_files, tmp_path):
-    line = error_line(run("-m", "magvit2.train", "--train_data", bad_files / "float_frames.npz", "--output_dir",
-                          tmp_path / "out", "--no_lpips"), "magvit2.train")
+def test_magvit2_train_names_frames_of_the_wrong_dtype(ran):
+    line = error_line(ran["magvit2_train"], "magvit2.train")
     assert "float_frames.npz: frames must be (N, H, W, 3) uint8" in line and "float32" in line
 
 
-def test_tokenize_frames_names_a_directory_that_is_no_tokenizer(bad_files, tmp_path):
-    np.savez(tmp_path / "frames.npz", frames=np.zeros((2, 16, 16, 3), np.uint8))
-    line = error_line(run("-m", "magvit2.tokenize_frames", tmp_path / "frames.npz", "--tokenizer_ckpt",
-                          bad_files / "empty_dir", "--output_dir", tmp_path / "tokens"), "magvit2.tokenize_frames")
+def test_tokenize_frames_names_a_directory_that_is_no_tokenizer(ran, bad_files):
+    line = error_line(ran["tokenize_frames"], "magvit2.tokenize_frames")
     assert f"tokenizer directory {bad_files / 'empty_dir'} lacks config.json" in line
-    assert not (tmp_path / "tokens").exists()
+    assert not (bad_files / "tokens").exists()
 
 
-def test_lpips_weights_names_an_sdist_that_is_no_tarball(bad_files, tmp_path):
-    line = error_line(run("-m", "magvit2.lpips_weights", "--sdist", bad_files / "not_a_tarball.tar.gz", "--out",
-                          tmp_path / "lpips.safetensors"), "magvit2.lpips_weights")
+def test_lpips_weights_names_an_sdist_that_is_no_tarball(ran, bad_files):
+    line = error_line(ran["lpips_weights"], "magvit2.lpips_weights")
     assert "not_a_tarball.tar.gz: not a readable .tar.gz" in line
-    assert not (tmp_path / "lpips.safetensors").exists()
+    assert not (bad_files / "lpips.safetensors").exists()
 
 
-def test_verify_names_a_missing_directory(tmp_path):
-    line = usage_error(run("-m", "data.verify", tmp_path / "missing"), "verify.py")
-    assert f"argument dirs: {tmp_path / 'missing'}: no such directory" in line
+def test_verify_names_a_missing_directory(ran, bad_files):
+    line = usage_error(ran["verify"], "verify.py")
+    assert f"argument dirs: {bad_files / 'missing'}: no such directory" in line
 
 
-def test_baselines_name_a_directory_that_is_no_dataset(bad_files):
-    line = error_line(run("-m", "genie.baselines", "--train_data_dir", bad_files / "empty_dir", "--val_data_dir",
-                          bad_files / "empty_dir"), "genie.baselines")
+def test_baselines_name_a_directory_that_is_no_dataset(ran, bad_files):
+    line = error_line(ran["baselines"], "genie.baselines")
     assert f"{bad_files / 'empty_dir' / 'metadata.json'}: file not found" in line
 
 
-@pytest.mark.parametrize("script, flags, message", [
-    ("bench_dataset_index.py", ["--num_frames", "-5"], "argument --num_frames: must be 1 or more, got -5"),
-    ("bench_tokenizer_train.py", ["--ch_mult", "1", "0"], "argument --ch_mult: must be 1 or more, got 0"),
+@pytest.mark.parametrize("script, message", [
+    ("bench_dataset_index.py", "argument --num_frames: must be 1 or more, got -5"),
+    ("bench_tokenizer_train.py", "argument --ch_mult: must be 1 or more, got 0"),
 ])
-def test_benchmark_scripts_name_a_bad_flag(script, flags, message):
-    assert message in usage_error(run(BENCHMARKS / script, *flags), script)
+def test_benchmark_scripts_name_a_bad_flag(ran, script, message):
+    assert message in usage_error(ran[script], script)
 
 
 # ---------------------------------------------------------------- in-process

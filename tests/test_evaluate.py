@@ -16,6 +16,7 @@ from common.images import psnr
 from data import RawTokenDataset, read_metadata, write_token_dataset
 import genie.evaluation
 from common.cli import run_main
+from tests.cli_runner import run_as_main
 from evaluate import main
 from genie import GenieConfig, STMaskGIT
 from genie.evaluation import (FrameScorer, example_indices, rollout_result, score_rollout, teacher_forced_evaluate,
@@ -440,11 +441,12 @@ def test_stall_ratio_reaches_the_rollouts_and_the_json_line(tiny, capsys, monkey
 def test_bad_input_ends_the_script_in_one_line(tiny, tmp_path):
     """As a script: a usage error (exit status 2) and a missing dataset (1) end in one error line, no traceback."""
     env = {k: v for k, v in os.environ.items() if k != "WORLD_SIZE"}
-    for extra, code, message in [
-            (["--stall_ratio", "2"], 2, "evaluate.py: error: argument --stall_ratio: expected a number in (0, 1]"),
-            (["--val_data_dir", str(tmp_path / "missing")], 1, f"evaluate.py: error: {tmp_path / 'missing'}")]:
-        argv = eval_args(tiny.data, tiny.ckpt, "--skip_lpips") + extra  # the later --val_data_dir wins
-        proc = subprocess.run([sys.executable, str(REPO / "evaluate.py"), *argv], capture_output=True, text=True,
-                              cwd=tiny.root, env=env, timeout=300)
+    cases = [(["--stall_ratio", "2"], 2, "evaluate.py: error: argument --stall_ratio: expected a number in (0, 1]"),
+             (["--val_data_dir", str(tmp_path / "missing")], 1, f"evaluate.py: error: {tmp_path / 'missing'}")]
+    # the later --val_data_dir wins
+    ran = run_as_main({i: (REPO / "evaluate.py", eval_args(tiny.data, tiny.ckpt, "--skip_lpips") + extra)
+                       for i, (extra, _, _) in enumerate(cases)}, cwd=tiny.root, env=env)
+    for i, (extra, code, message) in enumerate(cases):
+        proc = ran[i]
         assert proc.returncode == code and proc.stdout == ""
         assert error_line(proc.stderr).startswith(message), proc.stderr
