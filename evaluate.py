@@ -35,12 +35,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.cli import apply_cpu_settings, resolve_device, run_main, setup_logging
+from common.cli import run_main, setup_logging
 from data import RawTokenDataset
 from genie.action_data import LATENT_ACTION_NAME, latent_action_sidecar
 from genie.evaluation import (EvaluationError, add_protocol_args, add_save_outputs_arg, add_window_args,  # noqa: F401
-                              check_protocol_args, check_single_process, check_window_args, delta_psnr, frame_scorer,
-                              load_model, model_windows, rollout_evaluate, teacher_forced_run)
+                              check_protocol_args, check_window_args, delta_psnr, frame_scorer, load_model,
+                              model_windows, rollout_evaluate, start_process, teacher_forced_run)
 from genie.model import STMaskGIT
 from lam.data import valid_targets
 from lam.probe import action_probe, transition_labels
@@ -124,10 +124,7 @@ def teacher_forced_result(model: STMaskGIT, loader, dataset: RawTokenDataset, ar
 
 def run(args: argparse.Namespace) -> dict:
     """The JSON line of --protocol on --checkpoint_dir and --val_data_dir."""
-    check_single_process()
-    device = resolve_device(args.device)
-    apply_cpu_settings(args.num_threads)
-    torch.manual_seed(args.seed)
+    device = start_process(args)
     model = load_model(args, device)
     dataset, _, loader = model_windows(model, args)
     if args.protocol == "rollout":

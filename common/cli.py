@@ -142,8 +142,7 @@ def run_main(prog: str, main: Callable[[Optional[list]], Optional[int]], argv: O
         return main(argv) or 0
     except (InputError, WriteError, TrainingError, FileNotFoundError, FileExistsError, NotADirectoryError,
             IsADirectoryError, PermissionError) as e:
-        message = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-        print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
+        print(f"{prog}: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 1
 
 

@@ -16,14 +16,14 @@ import sys
 import torch
 from tqdm import tqdm
 
-from common.cli import apply_cpu_settings, resolve_device, run_main, setup_logging
+from common.cli import run_main, setup_logging
 from common.errors import DataMismatchError
 from genie.copy_ceiling import ceiling_rollout
 from genie.evaluation import (EvaluationError, add_per_window_arg, add_prompt_arg, add_protocol_args,
                               add_save_outputs_arg, add_window_args, add_rollout_scores, check_per_window_arg,
-                              check_prompt_arg, check_protocol_args, check_single_process, check_window_args,
-                              frame_scorer, load_model, model_windows, rollout_evaluate, rollout_result,
-                              teacher_forced_run, windows_dataset, windows_loader, write_per_window)
+                              check_prompt_arg, check_protocol_args, check_window_args, frame_scorer, load_model,
+                              model_windows, rollout_evaluate, rollout_result, start_process, teacher_forced_run,
+                              windows_dataset, windows_loader, write_per_window)
 from genie.rollout_breakdown import breakdown, describe
 
 logger = logging.getLogger("genie.diagnostics")
@@ -60,16 +60,6 @@ frames alone; the dataset needs no action streams. The JSON line is the protocol
 metrics (delta_psnr, the probe), plus "actions_withheld": true."""
 
 
-def start(args: argparse.Namespace) -> torch.device:
-    """The process set-up of a diagnostic that scores futures, as evaluate.py's: one process, --device,
-    --num_threads, --seed."""
-    check_single_process()
-    device = resolve_device(args.device)
-    apply_cpu_settings(args.num_threads)
-    torch.manual_seed(args.seed)
-    return device
-
-
 # ------------------------------------------------------------------ copy_ceiling
 @torch.no_grad()
 def copy_ceiling_evaluate(loader, args: argparse.Namespace, device: torch.device, scorer, num_bits: int,
@@ -95,7 +85,7 @@ def _progress(loader, desc: str):
 
 
 def run_copy_ceiling(args: argparse.Namespace) -> dict:
-    device = start(args)
+    device = start_process(args)
     dataset = windows_dataset(args)
     h, w = dataset.metadata["h"], dataset.metadata["w"]
     if h % args.ceiling_block or w % args.ceiling_block:
@@ -140,15 +130,22 @@ def check_copy_ceiling(parser, args: argparse.Namespace) -> None:
 
 
 # ------------------------------------------------------------------ per_window
-def run_per_window(args: argparse.Namespace) -> dict:
-    device = start(args)
-    model = load_model(args, device)
-    dataset, indices, loader = model_windows(model, args)
-    per_window = []
+def rollout_writing_windows(model, args: argparse.Namespace, device: torch.device,
+                            withhold_actions: bool = False) -> dict:
+    """The rollout protocol's JSON line for `model`, with each window's own scores written to --per_window_out when
+    it is set."""
+    dataset, indices, loader = model_windows(model, args, withhold_actions=withhold_actions)
+    per_window = [] if args.per_window_out else None
     result = rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device, "rollout"),
-                              per_window)
-    write_per_window(args.per_window_out, per_window, dataset, indices)
+                              per_window, withhold_actions=withhold_actions)
+    if per_window is not None:
+        write_per_window(args.per_window_out, per_window, dataset, indices)
     return result
+
+
+def run_per_window(args: argparse.Namespace) -> dict:
+    device = start_process(args)
+    return rollout_writing_windows(load_model(args, device), args, device)
 
 
 def add_per_window_parser(subparsers) -> None:
@@ -205,19 +202,15 @@ def check_breakdown(parser, args: argparse.Namespace) -> None:
 
 # ------------------------------------------------------------------ withheld_actions
 def run_withheld_actions(args: argparse.Namespace) -> dict:
-    device = start(args)
+    device = start_process(args)
     model = load_model(args, device)
     if not model.config.uses_actions:
         raise DataMismatchError(f"withheld_actions: the checkpoint {args.checkpoint_dir} takes no actions to "
                                 f"withhold (evaluate.py scores it as it is)")
-    dataset, indices, loader = model_windows(model, args, withhold_actions=True)
     if args.protocol == "rollout":
-        per_window = [] if args.per_window_out else None
-        scorer = frame_scorer(args, dataset, device, "rollout")
-        result = rollout_evaluate(model, loader, args, device, scorer, per_window, withhold_actions=True)
-        if per_window is not None:
-            write_per_window(args.per_window_out, per_window, dataset, indices)
+        result = rollout_writing_windows(model, args, device, withhold_actions=True)
     else:
+        dataset, _, loader = model_windows(model, args, withhold_actions=True)
         with torch.no_grad():
             result, _ = teacher_forced_run(model, loader, dataset, args, device, withhold_actions=True)
     return {**result, "actions_withheld": True}

@@ -23,7 +23,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import add_device_arg, add_num_threads_arg
+from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device
 from common.errors import DataMismatchError, InputError, writing
 from common.files import atomic_file
 from common.images import psnr, ssim
@@ -189,6 +189,15 @@ def check_protocol_args(parser, args: argparse.Namespace) -> None:
 
 
 # ------------------------------------------------------------------ set-up
+def start_process(args: argparse.Namespace) -> torch.device:
+    """The process set-up of a command that scores futures: one process, --device, --num_threads, --seed."""
+    check_single_process()
+    device = resolve_device(args.device)
+    apply_cpu_settings(args.num_threads)
+    torch.manual_seed(args.seed)
+    return device
+
+
 def check_single_process() -> None:
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     if world_size > 1:

@@ -281,15 +281,21 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self_reveal_ratio = (recipe or TrainingRecipe()).self_reveal_ratio
         if self.training and self_reveal_ratio > 0:
             x_BTHW = self.reveal_own_predictions(x_BTHW, cond_BTC, self_reveal_ratio)
-        sources_BTSK = self.window_copy_sources(x_BTHW)
-        x_BTSC = self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
         relevant_BTS = rearrange(x_BTHW == self.mask_token_id, "B T H W -> B T (H W)")
         relevant_BTS[:, 0] = False  # frame 0 is always given
-        factored_NVF = self.readout(x_BTSC[relevant_BTS], None if sources_BTSK is None else sources_BTSK[relevant_BTS])
+        factored_NVF = self.readout_at(x_BTHW, cond_BTC, relevant_BTS)
         targets_N = rearrange(labels_BTHW, "B T H W -> B T (H W)")[relevant_BTS]
         num_relevant = max(targets_N.numel(), 1)
         return LossOutput(loss=factored_cross_entropy(factored_NVF, targets_N).sum() / num_relevant,
                           acc=factored_argmax_correct(factored_NVF, targets_N).sum().float() / num_relevant)
+
+    def readout_at(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
+                   where_BTS: torch.Tensor) -> torch.Tensor:
+        """Factored logits (N, V, F) of the N positions `where_BTS` (B, T, S) of a window's frames x_BTHW (B, T, H, W)
+        with action embeddings cond_BTC, read out there only."""
+        sources_BTSK = self.window_copy_sources(x_BTHW)
+        x_BTSC = self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
+        return self.readout(x_BTSC[where_BTS], None if sources_BTSK is None else sources_BTSK[where_BTS])
 
     @torch.no_grad()
     def reveal_own_predictions(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
@@ -308,11 +314,8 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         x_bTHW = x_BTHW[chosen_B]  # a copy
         masked_bTHW = x_bTHW == self.mask_token_id
         masked_bTHW[:, 0] = False
-        masked_bTS = rearrange(masked_bTHW, "b T H W -> b T (H W)")
-        sources_bTSK = self.window_copy_sources(x_bTHW)
-        hidden_NC = self.hidden_states(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B],
-                                       sources_BTSK=sources_bTSK)[masked_bTS]
-        logits_NVF = self.readout(hidden_NC, None if sources_bTSK is None else sources_bTSK[masked_bTS])
+        logits_NVF = self.readout_at(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B],
+                                     rearrange(masked_bTHW, "b T H W -> b T (H W)"))
         guesses_N = unfactorize_token_ids(logits_NVF.float().argmax(dim=1), self.config.num_factored_vocabs,
                                           self.config.factored_vocab_size)
         # 1 - MaskGIT's cosine schedule (genie.sampling.cosine_schedule) at a uniform progress
