@@ -1,0 +1,172 @@
+"""The sample world itself as a Gymnasium environment: the walker's ViZDoom renderer and frame processing, driven
+by held buttons for one window step (15 tics, the stride between a token dataset window's frames) per `step`.
+
+Its actions mean what the world model's environment (genie/world_env.py) means by them, so a player or a policy
+that drives one drives the other. A start is a recorded walk's frame: the walk's episode seed replays the same
+warm-up and explorer tics (`data.sample_world.start_walk`), so `reset(options={"map": "MAP18", "episode_seed": s,
+"frame": k})` shows frame k of the walk recorded with seed s; `recorded_start` finds those three for a frame of a
+built world.
+
+    env = DoomEnv(maps=["MAP18"])
+    frame, info = env.reset(seed=0)
+    frame, reward, terminated, truncated, info = env.step(np.array([1, 0, 0, 0, 0], dtype=np.int8))  # forward
+"""
+import json
+import math
+import tempfile
+from pathlib import Path
+from typing import Optional, Sequence
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from common.errors import InputError
+from data.sample_world import (BUTTON_NAMES, HZ, SIDECAR_NAME, VAL_MAPS, WorldConfig, check_maps, engine_action,
+                               gamma_table, make_game, preprocess_frame, start_walk)
+
+STEP_TICS = 15  # engine tics per step: one window step of the token datasets (stride 15 at 35 Hz)
+MAX_START_FRAME = 1500  # recorded tics a random start walks before it begins (a recorded walk's length)
+
+
+class EnvInputError(InputError):
+    """An action or a reset option that the environment cannot take."""
+
+
+def buttons_from_names(names: Sequence[str], button_names: Sequence[str] = BUTTON_NAMES) -> np.ndarray:
+    """Held button names (e.g. ["MOVE_FORWARD", "TURN_LEFT"]) -> a 0/1 int8 vector in `button_names` order."""
+    if isinstance(names, (str, bytes)) or not all(isinstance(n, str) for n in names):
+        raise EnvInputError(f"action must be a list of button names, got {names!r}")
+    unknown = [n for n in names if n not in button_names]
+    if unknown:
+        raise EnvInputError(f"unknown button(s) {unknown}: the buttons are {list(button_names)}")
+    return np.array([int(b in names) for b in button_names], dtype=np.int8)
+
+
+def check_buttons(action, num_buttons: int) -> np.ndarray:
+    """A MultiBinary action (sequence of 0/1) -> int8 (num_buttons,); clear error otherwise."""
+    a = np.asarray(action)
+    if a.shape != (num_buttons,) or not np.isin(a, (0, 1)).all():
+        raise EnvInputError(f"action must be {num_buttons} values of 0 or 1 (one per button "
+                            f"{list(BUTTON_NAMES)[:num_buttons]}), got {action!r}")
+    return a.astype(np.int8)
+
+
+def world_config(raw_dir) -> WorldConfig:
+    """The WorldConfig a sample world was rendered with (raw_dir/sample_world.json)."""
+    path = Path(raw_dir) / SIDECAR_NAME
+    if not path.is_file():
+        raise EnvInputError(f"{path} not found: not the raw folder of a sample world (magvit2.build_sample writes it)")
+    return WorldConfig(**json.loads(path.read_text())["config"])
+
+
+def recorded_start(raw_npz, frame_index: int) -> dict:
+    """Where frame `frame_index` of a rendered split (raw/train.npz or raw/val.npz, in the token dataset's frame
+    order) was recorded: {"map", "episode_seed", "frame"} (frame: its index within its walk), DoomEnv's reset
+    options for that frame."""
+    with np.load(raw_npz) as npz:
+        segment_ids, maps, seeds = npz["segment_ids"], npz["maps"], npz["episode_seeds"]
+    if not 0 <= frame_index < len(segment_ids):
+        raise EnvInputError(f"{raw_npz}: frame {frame_index} out of range [0, {len(segment_ids)})")
+    episode = int(segment_ids[frame_index])
+    first = int(np.searchsorted(segment_ids, episode))
+    return {"map": str(maps[episode]), "episode_seed": int(seeds[episode]), "frame": frame_index - first}
+
+
+class DoomEnv(gym.Env):
+    """The sample world's walker, one window step per `step`.
+
+    Observation: the (S, S, 3) uint8 frame as the datasets record it. Action: MultiBinary(5), the buttons held for
+    the whole step in BUTTON_NAMES order. Reward 0 (a task sets its own); terminated when the level ends (an exit
+    was used); never truncated (wrap it in gymnasium's TimeLimit). info: "pose" (x, y, heading in degrees),
+    "map", "episode_seed", "frame" (recorded tics walked before the start) and, after a step, "motion" (the
+    step's displacement along the start heading in map units and its turn in degrees, counter-clockwise positive).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": HZ / STEP_TICS}
+
+    def __init__(self, maps: Sequence[str] = VAL_MAPS, cfg: Optional[WorldConfig] = None,
+                 step_tics: int = STEP_TICS, render_mode: Optional[str] = None):
+        if render_mode not in (None, "rgb_array"):
+            raise EnvInputError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.maps = list(maps)
+        check_maps(self.maps)
+        self.cfg = cfg or WorldConfig()
+        self.step_tics, self.render_mode = int(step_tics), render_mode
+        S = self.cfg.frame_size
+        self.observation_space = spaces.Box(0, 255, (S, S, 3), dtype=np.uint8)
+        self.action_space = spaces.MultiBinary(len(BUTTON_NAMES))
+        self._gamma_lut = gamma_table(self.cfg.gamma)
+        self._workdir = tempfile.TemporaryDirectory(prefix="vizdoom.", ignore_cleanup_errors=True)
+        self._game, self._map = None, None
+        self._frame, self._start = None, {}
+
+    def _game_on(self, map_name: str):
+        if self._map != map_name:
+            self.close_game()
+            self._game, self._map = make_game(map_name, self.cfg, workdir=self._workdir.name), map_name
+        return self._game
+
+    def _pose(self) -> tuple:
+        return tuple(float(v) for v in self._game.get_state().game_variables)
+
+    def _observe(self) -> np.ndarray:
+        self._frame = preprocess_frame(self._game.get_state().screen_buffer, self.cfg.frame_size, self._gamma_lut)
+        return self._frame
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        """options (all optional): "map" (default: one of `maps`, drawn), "episode_seed" (default: drawn),
+        "frame" (recorded tics to walk after the warm-up, default: drawn in [0, 1500))."""
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - {"map", "episode_seed", "frame"}
+        if unknown:
+            raise EnvInputError(f"unknown reset option(s) {sorted(unknown)}: DoomEnv takes map, episode_seed, frame")
+        map_name = options.get("map", self.maps[int(self.np_random.integers(len(self.maps)))])
+        episode_seed = int(options.get("episode_seed", self.np_random.integers(0, 2**32 - 1)))
+        frame = int(options.get("frame", self.np_random.integers(0, MAX_START_FRAME)))
+        if frame < 0:
+            raise EnvInputError(f"frame must be >= 0, got {frame}")
+        game = self._game_on(map_name)
+        policy = start_walk(game, episode_seed, self.cfg)
+        for _ in range(frame):  # the explorer's recorded tics up to the start frame
+            if game.is_episode_finished():
+                raise EnvInputError(f"{map_name}: the walk of seed {episode_seed} ends before frame {frame}")
+            state = game.get_state()
+            game.make_action(engine_action(policy(state.depth_buffer, state.game_variables[:2]), self.cfg))
+        if game.is_episode_finished():
+            raise EnvInputError(f"{map_name}: the walk of seed {episode_seed} ends at frame {frame}")
+        self._start = {"map": map_name, "episode_seed": episode_seed, "frame": frame}
+        return self._observe(), {**self._start, "pose": self._pose()}
+
+    def step(self, action):
+        if self._game is None or self._frame is None:
+            raise EnvInputError("call reset() before step()")
+        buttons = check_buttons(action, len(BUTTON_NAMES))
+        if self._game.is_episode_finished():
+            return self._frame, 0.0, True, False, {**self._start, "pose": None, "motion": (0.0, 0.0)}
+        x0, y0, a0 = self._pose()
+        command = engine_action(tuple(int(b) for b in buttons), self.cfg)
+        for _ in range(self.step_tics):  # one tic at a time: delta inputs act per tic
+            self._game.make_action(command)
+            if self._game.is_episode_finished():
+                return self._frame, 0.0, True, False, {**self._start, "pose": None, "motion": (0.0, 0.0)}
+        x1, y1, a1 = pose = self._pose()
+        heading = math.radians(a0)
+        motion = ((x1 - x0) * math.cos(heading) + (y1 - y0) * math.sin(heading), (a1 - a0 + 180.0) % 360.0 - 180.0)
+        return self._observe(), 0.0, False, False, {**self._start, "pose": pose, "motion": motion}
+
+    def render(self):
+        return None if self.render_mode is None else self._frame
+
+    def close_game(self) -> None:
+        if self._game is not None:
+            self._game.close()
+        self._game, self._map = None, None
+
+    def close(self):
+        self.close_game()
+        if self._workdir is not None:
+            self._workdir.cleanup()
+            self._workdir = None
+        super().close()

@@ -1,0 +1,46 @@
+"""Tiny world models, tokenizers and token datasets for the play tests (environments, server, browser)."""
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from data import write_token_dataset
+from genie.config import GenieConfig
+from genie.model import STMaskGIT
+from magvit2 import VQConfig, VQModel
+
+T = 4  # a short window: the context slides after a few steps
+
+
+def tiny_tokenizer(path: Path) -> Path:
+    """A small random 64x64 -> 16x16 tokenizer."""
+    torch.manual_seed(0)
+    VQModel(VQConfig(base_channels=32, ch_mult=[1, 2, 2], num_res_blocks=1, resolution=64)).save_pretrained(path)
+    return path
+
+
+def tiny_model(path: Path, latent: int = 0, seed: int = 0) -> Path:
+    """A random 1-layer dynamics model with a copy head, driven by 5 buttons (or `latent` latent actions)."""
+    torch.manual_seed(seed)
+    actions = ({"num_latent_actions": latent} if latent else
+               {"action_names": ["buttons"], "action_dim": 5, "action_step_mean": True})
+    config = GenieConfig(num_layers=1, num_heads=2, d_model=32, T=T, S=256, image_vocab_size=262144,
+                         num_prompt_frames=2, copy_radius=1, copy_match_input=True, **actions)
+    model = STMaskGIT(config)
+    model.init_weights()
+    with torch.no_grad():  # make the actions matter: a strong action projection
+        if model.action_cond is not None and config.action_dim:
+            model.action_cond.action_proj.weight.normal_(0, 1.0)
+    model.save_pretrained(path)
+    return path
+
+
+def tiny_dataset(path: Path, tokenizer: Path, num_frames: int = 200, latent: int = 0) -> Path:
+    """Random tokens with random held buttons (and latent ids), in windows of T frames at stride 15."""
+    rng = np.random.default_rng(0)
+    video = rng.integers(0, 262144, size=(num_frames, 16, 16))
+    actions = {"buttons": (rng.random((num_frames, 5)) < 0.3).astype(np.float32)}
+    if latent:
+        actions["latent_action"] = rng.integers(0, latent, size=(num_frames, 1)).astype(np.float32)
+    return write_token_dataset(path, video, np.zeros(num_frames, dtype=np.int32), actions=actions,
+                               metadata={"hz": 35, "tokenizer_ckpt": str(tokenizer)})
