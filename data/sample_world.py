@@ -2,17 +2,20 @@
 
 The offline stand-in for the 1X robot videos: an explorer policy walks through maps with no monsters, HUD, weapon
 or sound, and every game tic (35 Hz, so the challenge's 16-frame windows at stride 15 span 6.9 s) we record a
-64x64 RGB frame (160x120 render, centre crop 120x120, area resize, gamma 1.5), the buttons held and a
-`driving_command`. Each split is one .npz:
+64x64 RGB frame (160x120 render, centre crop 120x120, area resize, gamma 1.5), the buttons held, the velocity they
+command (`driving_command`) and the motion measured. Each split is one .npz:
 - `frames` (N, 64, 64, 3) uint8; `segment_ids` (N,) int32, one id per episode, increasing; `hz` = 35;
   `maps` (E,) and `episode_seeds` (E,) per episode; `button_names`.
 - `actions_buttons` (N, 5) float32 0/1 in the order MOVE_FORWARD, MOVE_BACKWARD, TURN_LEFT, TURN_RIGHT, USE:
   row t is what was held during the tic that leads from frame t to frame t+1.
-- `actions_driving_command` (N, 2) float32 = (linear, angular) velocity over that same tic, the forward difference
-  of the pose from frame t to frame t+1 (the motion commanded at frame t, like the 1X robot's): linear = the
-  displacement projected on the heading at frame t in map units/s (64 units ~ 2 m; top speed about 146, and Doom
-  momentum makes it ramp up and coast for a few tics); angular = heading change in rad/s, counter-clockwise
-  positive, so TURN_LEFT gives +0.53 and TURN_RIGHT -0.53.
+- `actions_driving_command` (N, 2) float32 = the (linear, angular) velocity those buttons command, as the 1X robot's
+  `driving_command` is its commanded base velocity: linear = (forward - backward) x the walker's top speed (145.8 map
+  units/s; 64 units ~ 2 m), angular = (left - right) x its turn rate (0.53 rad/s, counter-clockwise positive). What a
+  player or a policy can say, so what a model that one drives is conditioned on.
+- `actions_measured_motion` (N, 2) float32 = the (linear, angular) velocity measured over that same tic, the forward
+  difference of the pose from frame t to frame t+1: displacement projected on the heading at frame t in map units/s
+  (Doom momentum makes it ramp up and coast for a few tics, and a wall stops it), heading change in rad/s. An
+  outcome, not a command: it already knows about the wall ahead, so it is for evaluation, never a model's input.
 - `poses` (N, 3) float32 = (x, y, heading in degrees) at frame t.
 No strafing, so (linear, angular) fully describes the motion, as for a wheeled base. The walker moves at half of
 Doom's walking speed and turns at a quarter of its turning speed (ViZDoom delta inputs; 30 degrees/s, a mobile
@@ -62,7 +65,7 @@ HELDOUT_MAPS = ("MAP18",)
 # numbers stay comparable across versions) and on the held-out map.
 VAL_MAPS = TRAIN_MAPS[:8] + HELDOUT_MAPS
 MAX_STEP = 30.0  # map units per tic; Doom caps momentum here, so a longer step is a teleport
-GENERATOR_VERSION = 1  # bump when a change in this file changes the generated data
+GENERATOR_VERSION = 2  # bump when a change in this file changes the generated data
 SIDECAR_NAME = "sample_world.json"
 STALL_TIMEOUT_S = 600.0  # seconds without a finished task before a worker pool is declared stuck (a task: ~5 s)
 
@@ -114,6 +117,17 @@ class WorldConfig:
             raise ValueError(f"WorldConfig needs turn_speed > 0 (degrees per tic), got {self.turn_speed}")
         if not self.walk_speed > 0:
             raise ValueError(f"WorldConfig needs walk_speed > 0, got {self.walk_speed}")
+
+    @property
+    def top_speed(self) -> float:
+        """Map units/s the walker reaches holding a move button: Doom thrusts walk_speed x 2048 / 65536 units per
+        tic against a friction that keeps 0.90625 of the momentum each tic."""
+        return self.walk_speed * (2048 / 65536) / (1 - 0.90625) * HZ
+
+    @property
+    def turn_rate(self) -> float:
+        """Radians/s the view turns while a turn button is held."""
+        return math.radians(self.turn_speed) * HZ
 
 
 def _hold(rng: np.random.Generator, lo: int, hi: int) -> int:
@@ -350,7 +364,16 @@ def preprocess_frame(screen_HWC: np.ndarray, size: int, gamma_lut: list) -> np.n
     return np.asarray(Image.fromarray(crop).resize((size, size), Image.Resampling.BOX).point(gamma_lut))
 
 
-def driving_command(poses_N3: np.ndarray, hz: float) -> np.ndarray:
+def driving_command(buttons_N5: np.ndarray, cfg: WorldConfig) -> np.ndarray:
+    """The velocity held buttons command: (N, 5) 0/1 in BUTTON_NAMES order -> (N, 2) float32 (linear in map
+    units/s, angular in rad/s counter-clockwise positive)."""
+    b = np.asarray(buttons_N5, dtype=np.float64).reshape(-1, len(BUTTON_NAMES))
+    linear = (b[:, 0] - b[:, 1]) * cfg.top_speed
+    angular = (b[:, 2] - b[:, 3]) * cfg.turn_rate
+    return np.stack([linear, angular], axis=1).astype(np.float32)
+
+
+def measured_motion(poses_N3: np.ndarray, hz: float) -> np.ndarray:
     """(linear, angular) velocity from consecutive poses: (N+1, 3) [x, y, degrees] -> (N, 2) float32.
 
     Row t is the forward difference from pose t to pose t+1: displacement along the heading at t in map units/s,
@@ -379,26 +402,31 @@ def _is_cut(pose0, pose1, buttons, cfg: WorldConfig) -> bool:
     return step > MAX_STEP or abs(turn - expected_turn) > 1.0
 
 
-def run_episode(game, episode_len: int, seed: int, cfg: WorldConfig) -> dict:
-    """Play one episode on an initialised game.
-
-    Returns frames (N, S, S, 3) uint8, buttons (N, 5) float32, driving_command (N, 2) float32 and poses (N, 3)
-    float32, with N = episode_len, or fewer when the level ends or a teleporter cuts the walk (the episode stops
-    before the jump, so every driving command is a real walking step).
-    """
+def start_walk(game, seed: int, cfg: WorldConfig) -> ExplorerPolicy:
+    """Start episode `seed` on an initialised game: engine seed, god mode and the unrecorded warm-up walk, as every
+    recorded walk starts. Returns the explorer that walks on (its random stream continues the seed's)."""
     rng = np.random.default_rng(seed)
     game.set_seed(int(rng.integers(0, 2**31 - 1)))
     game.new_episode()
     game.send_game_command("god")
     policy = ExplorerPolicy(cfg, rng)
-    gamma_lut = gamma_table(cfg.gamma)
-
     for _ in range(int(rng.integers(cfg.warmup_min_tics, cfg.warmup_max_tics + 1))):
         if game.is_episode_finished():
             break
         state = game.get_state()
         game.make_action(engine_action(policy(state.depth_buffer, state.game_variables[:2]), cfg))
+    return policy
 
+
+def run_episode(game, episode_len: int, seed: int, cfg: WorldConfig) -> dict:
+    """Play one episode on an initialised game.
+
+    Returns frames (N, S, S, 3) uint8, buttons (N, 5) float32, driving_command and measured_motion (N, 2) float32
+    and poses (N, 3) float32, with N = episode_len, or fewer when the level ends or a teleporter cuts the walk (the
+    episode stops before the jump, so every measured motion is a real walking step).
+    """
+    policy = start_walk(game, seed, cfg)
+    gamma_lut = gamma_table(cfg.gamma)
     frames, buttons_list, poses = [], [], []
     while not game.is_episode_finished():
         state = game.get_state()
@@ -412,12 +440,14 @@ def run_episode(game, episode_len: int, seed: int, cfg: WorldConfig) -> dict:
         frames.append(preprocess_frame(state.screen_buffer, cfg.frame_size, gamma_lut))
         buttons_list.append(buttons)
         game.make_action(engine_action(buttons, cfg))
-    n = len(poses) - 1  # a frame needs the next pose for its driving command
+    n = len(poses) - 1  # a frame needs the next pose for its measured motion
     poses_arr = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    buttons_arr = np.asarray(buttons_list[:n], dtype=np.float32).reshape(n, len(BUTTON_NAMES))
     return {
         "frames": np.asarray(frames[:n], dtype=np.uint8).reshape(n, cfg.frame_size, cfg.frame_size, 3),
-        "buttons": np.asarray(buttons_list[:n], dtype=np.float32).reshape(n, len(BUTTON_NAMES)),
-        "driving_command": driving_command(poses_arr, HZ) if n > 0 else np.zeros((0, 2), np.float32),
+        "buttons": buttons_arr,
+        "driving_command": driving_command(buttons_arr, cfg),
+        "measured_motion": measured_motion(poses_arr, HZ) if n > 0 else np.zeros((0, 2), np.float32),
         "poses": poses_arr[:n].astype(np.float32),
     }
 
@@ -497,7 +527,7 @@ def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int,
     """Generate `episodes_per_map` episodes of `episode_len` tics on each map; episodes ordered map by map.
 
     Returns frames (N, S, S, 3) uint8, segment_ids (N,) int32 (episode index), actions_buttons (N, 5) float32,
-    actions_driving_command (N, 2) float32, poses (N, 3) float32, hz, maps (E,) per-episode map names,
+    actions_driving_command and actions_measured_motion (N, 2) float32, poses (N, 3) float32, hz, maps (E,) per-episode map names,
     episode_seeds (E,) and button_names. The result depends only on the arguments (not on `workers`).
     """
     cfg = cfg or WorldConfig()
@@ -528,6 +558,7 @@ def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int,
         "segment_ids": np.repeat(np.arange(len(episodes), dtype=np.int32), lengths),
         "actions_buttons": np.concatenate([ep["buttons"] for ep in episodes]),
         "actions_driving_command": np.concatenate([ep["driving_command"] for ep in episodes]),
+        "actions_measured_motion": np.concatenate([ep["measured_motion"] for ep in episodes]),
         "poses": np.concatenate([ep["poses"] for ep in episodes]),
         "hz": np.int32(HZ),
         "maps": np.array(episode_maps),

@@ -6,6 +6,7 @@ subcommand each (`python -m genie.diagnostics SUBCOMMAND --help` explains it and
     python -m genie.diagnostics per_window --per_window_out windows.jsonl --max_examples 48 --spread_examples
     python -m genie.diagnostics breakdown windows.jsonl --val_data_dir data/sample/val --column 1
     python -m genie.diagnostics withheld_actions --protocol rollout --max_examples 48
+    python -m genie.diagnostics control --val_data_dir data/unseen/val --num_starts 24
 """
 import argparse
 import functools
@@ -47,7 +48,7 @@ segment_id), so that the scores can be split by what happens in each window (its
 BREAKDOWN_DOC = """\
 A --per_window_out file's windows cut into --bins groups of equal size by one number: the mean absolute value of
 one action column over the window's generated frames (each row the mean over its window step; the sample world's
-driving_command column 1 is the turn rate, column 0 the forward speed). Each group's futures are compared with
+measured_motion column 1 is the turn rate, column 0 the forward speed, as measured). Each group's futures are compared with
 holding the last prompt frame per horizon (genie/rollout_breakdown.py): a mean over all windows can hide a group of
 windows where the futures lose to holding; this shows which motion it is. One readable line per group goes to
 stderr; the JSON line is {"stream", "column", "groups": [{"low", "high", "num_windows", "psnr_gain" (dB per
@@ -180,10 +181,10 @@ def add_breakdown_parser(subparsers) -> None:
                                            "withheld_actions') --per_window_out.")
     parser.add_argument("--val_data_dir", required=True,
                         help="Required: the token dataset that the run which wrote the file scored.")
-    parser.add_argument("--stream", default="driving_command",
+    parser.add_argument("--stream", default="measured_motion",
                         help="Action stream that places each window (default: %(default)s).")
     parser.add_argument("--column", type=int, default=1,
-                        help="Column of --stream (the sample world's driving_command: 0 forward speed, 1 turn rate; "
+                        help="Column of --stream (the sample world's measured_motion: 0 forward speed, 1 turn rate; "
                              "default: %(default)s).")
     parser.add_argument("--bins", type=int, default=3,
                         help="Groups of equal size to cut the windows into (default: %(default)s).")
@@ -232,6 +233,77 @@ def check_withheld_actions(parser, args: argparse.Namespace) -> None:
     check_protocol_args(parser, args)
 
 
+# ------------------------------------------------------------------ control
+def run_control(args: argparse.Namespace) -> dict:
+    from genie.control_check import control_check
+    from genie.evaluation import example_indices
+    from genie.play_server import real_world_for
+    from genie.world_env import WorldModelEnv
+
+    start_process(args)
+    env = WorldModelEnv.from_checkpoint(args.checkpoint_dir, args.val_data_dir, args.tokenizer_ckpt,
+                                        device="cpu", copy_bias=args.copy_bias, temperature=args.temperature,
+                                        maskgit_steps=args.maskgit_steps)
+    if not env.buttons:
+        raise DataMismatchError(f"control: the checkpoint {args.checkpoint_dir} is not driven by the sample world's "
+                                f"buttons (its action_names are {env.model.config.action_names})")
+    real_env, raw_npz = (None, None) if args.no_real_world else real_world_for(env, args.val_data_dir)
+    if real_env is None:
+        logger.info("no real world to compare with: %s", raw_npz)
+    starts = example_indices(len(env.starts), args.num_starts, spread=True)
+    result = control_check(env, starts, args.steps, args.seed, real_env, raw_npz if real_env else None)
+    for world in ("model", "real"):
+        if result[world] is not None:
+            r = result[world]
+            logger.info("%s: mean shift per step %s px; opposite turns in %.0f %% of starts (left right, right "
+                        "left in %.0f %%); forward less sideways than both turns in %.0f %%", world,
+                        {a: round(v, 2) for a, v in r["mean_shift"].items()}, 100 * r["opposite_turns_share"],
+                        100 * r["left_right_share"], 100 * r["forward_less_sideways_share"])
+    return {"checkpoint_dir": str(args.checkpoint_dir), "val_data_dir": str(args.val_data_dir),
+            "temperature": args.temperature, "seed": args.seed, **result}
+
+
+CONTROL_DOC = """Does the model obey its controls? From --num_starts windows spread over --val_data_dir, the world model environment
+holds TURN_LEFT, TURN_RIGHT and MOVE_FORWARD for --steps steps each, from the same start and sampler seed, and the
+horizontal shift between consecutive frames is measured by phase correlation (pixels per step; positive: the image
+moves right, as when the view turns left). The same starts and buttons are played in the real world beside when the
+data is a sample world's split (genie/control_check.py). The JSON line has "model" and "real" summaries
+(mean_shift per action, opposite_turns_share, left_right_share, forward_less_sideways_share,
+forward_less_sideways_mean) and "per_start"."""
+
+
+def add_control_parser(subparsers) -> None:
+    parser = _subparser(subparsers, "control", "hold each button from the same starts: do the frames turn and walk "
+                                               "as the button says?", CONTROL_DOC)
+    parser.add_argument("--checkpoint_dir", default="data/genie_model/final_checkpt",
+                        help="The model, driven by the sample world's buttons (default: %(default)s).")
+    parser.add_argument("--val_data_dir", default="data/unseen/val",
+                        help="Token dataset of the starts (default: %(default)s, maps never trained on).")
+    parser.add_argument("--tokenizer_ckpt", default=None,
+                        help="Tokenizer that decodes the frames (default: the one the data's metadata names).")
+    parser.add_argument("--num_starts", type=int, default=24, help="Starts spread over the data (default: "
+                                                                   "%(default)s).")
+    parser.add_argument("--steps", type=int, default=8, help="Steps each button is held (default: %(default)s).")
+    parser.add_argument("--temperature", type=float, default=1.0, help="Sampling temperature (default: %(default)s, "
+                                                                       "play.py's).")
+    parser.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT steps per frame (default: "
+                                                                     "%(default)s).")
+    parser.add_argument("--copy_bias", type=float, default=2.0, help="The copy head's bias (default: %(default)s).")
+    parser.add_argument("--no_real_world", action="store_true", help="Do not play the real world as the reference.")
+    parser.add_argument("--seed", type=int, default=0, help="Sampler seed of the first start (default: %(default)s).")
+    parser.add_argument("--device", default="cpu", help=argparse.SUPPRESS)
+    parser.add_argument("--num_threads", type=int, default=0, help="CPU threads (0: torch's default).")
+    parser.set_defaults(check=functools.partial(check_control, parser), run=run_control)
+
+
+def check_control(parser, args: argparse.Namespace) -> None:
+    for name in ("num_starts", "steps", "maskgit_steps"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.temperature < 0:
+        parser.error(f"--temperature must be >= 0, got {args.temperature}")
+
+
 # ------------------------------------------------------------------ command line
 def _subparser(subparsers, name: str, summary: str, description: str) -> argparse.ArgumentParser:
     return subparsers.add_parser(name, help=summary, description=description,
@@ -247,6 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_per_window_parser(subparsers)
     add_breakdown_parser(subparsers)
     add_withheld_actions_parser(subparsers)
+    add_control_parser(subparsers)
     return parser
 
 

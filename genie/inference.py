@@ -240,3 +240,48 @@ def sample_targets(model, logits_fn, B: int, T: int, x_BTHW: torch.Tensor, maskg
                                                temperature, unmask_mode, generator)
     return (rearrange(samples_NHW, "(B n) H W -> B n H W", B=B),
             rearrange(logits_NVFHW, "(B n) V F H W -> B V F n H W", B=B))
+
+
+def window_inputs(model, tokens_nHW: torch.Tensor, actions_nD: Optional[torch.Tensor],
+                  latent_n: torch.Tensor):
+    """The window of a step: the n context frames and a masked new frame (1, n + 1, H, W), and its action embeddings
+    (1, n + 1, C) or None. actions_nD: real action rows of the n context frames (NaN: unknown), latent_n: latent ids
+    of the n + 1 frames (num_latent_actions: none)."""
+    config = model.config
+    n = len(tokens_nHW)
+    window_BTHW = torch.cat([tokens_nHW, torch.full_like(tokens_nHW[:1], model.mask_token_id)])[None]
+    actions_BTD = None
+    if config.action_dim:
+        actions_BTD = torch.cat([actions_nD, torch.full_like(actions_nD[:1], float("nan"))])[None].to(
+            tokens_nHW.device)
+    latent_BT = latent_n[None].to(tokens_nHW.device) if config.num_latent_actions else None
+    return window_BTHW, model.action_embeds(1, n + 1, actions_BTD, latent_BT, n + 1)
+
+
+@torch.no_grad()
+def next_frame(model, tokens_nHW: torch.Tensor, actions_nD: Optional[torch.Tensor],
+               latent_n: torch.Tensor, cache: Optional[TemporalKVCache], maskgit_steps: int, temperature: float,
+               generator: Optional[torch.Generator] = None):
+    """Sample frame n after n <= T-1 context frames (n, H, W) at window positions 0..n-1.
+
+    cache: the context's temporal keys/values from the step before, reused when it holds exactly these n frames
+    at these positions (else recomputed). Returns (the new frame (H, W), a cache that holds the n + 1 frames, or
+    None once the window is full)."""
+    n = len(tokens_nHW)
+    window_BTHW, cond_BTC = window_inputs(model, tokens_nHW, actions_nD, latent_n)
+    cond = (lambda a, b: None) if cond_BTC is None else (lambda a, b: cond_BTC[:, a:b])
+    if cache is None or cache.length != n:
+        cache = TemporalKVCache(model.config.num_layers, model.config.T)
+        run_frames(model, window_BTHW[:, :n], 0, cache, TemporalMode.PREFILL, commit=n, cond_BTC=cond(0, n))
+    greedy = temperature <= GREEDY_TEMPERATURE
+
+    def logits_fn(frame_BHW):
+        return frame_slice(run_frames(model, frame_BHW[:, None], n, cache, cond_BTC=cond(n, n + 1), with_mode=True,
+                                      greedy=greedy), 0)
+
+    frame_BHW, _ = maskgit_sample(logits_fn, window_BTHW[:, n], model.mask_token_id, maskgit_steps, temperature,
+                                  "random", generator)
+    if n + 1 >= model.config.T:
+        return frame_BHW[0], None
+    run_frames(model, frame_BHW[:, None], n, cache, TemporalMode.PREFILL, commit=1, cond_BTC=cond(n, n + 1))
+    return frame_BHW[0], cache

@@ -15,7 +15,7 @@ from einops import rearrange
 from genie.factorization import factorize_token_ids
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import (check_teacher_forced, frame_slice, generation_inputs, sample_targets, stack_frames,
-                             targets_to_frames)
+                             targets_to_frames, window_inputs)
 from genie.model import LossOutput, MaskGITBatch
 from genie.sampling import maskgit_sample
 
@@ -53,6 +53,25 @@ def generate_uncached(model, prompt_BTHW: torch.Tensor, num_new_frames: int, mas
         tokens_BTHW[:, t] = sample_BHW
         all_logits.append(logits_BVFHW)
     return tokens_BTHW, torch.stack(all_logits, dim=3)
+
+
+@torch.no_grad()
+def next_frame_recomputed(model, tokens_nHW: torch.Tensor, actions_nD: Optional[torch.Tensor], latent_n: torch.Tensor,
+                          maskgit_steps: int, temperature: float,
+                          generator: Optional[torch.Generator] = None) -> torch.Tensor:
+    """genie.inference.next_frame (a world model environment's step) by recomputing the whole window of n + 1
+    frames at every MaskGIT step: same arguments but the cache, the same new frame (H, W)."""
+    window_BTHW, cond_BTC = window_inputs(model, tokens_nHW, actions_nD, latent_n)
+    n = len(tokens_nHW)
+
+    def logits_fn(frame_BHW):
+        current_BTHW = window_BTHW.clone()
+        current_BTHW[:, n] = frame_BHW
+        return frame_slice(model.logits_unchecked(current_BTHW, cond_BTC, with_mode=True), n)
+
+    frame_BHW, _ = maskgit_sample(logits_fn, window_BTHW[:, n], model.mask_token_id, maskgit_steps, temperature,
+                                  "random", generator)
+    return frame_BHW[0]
 
 
 @torch.no_grad()

@@ -6,7 +6,7 @@
 
 Each window of a --per_window_out file is placed by one number: the mean absolute value of one action column over
 its generated frames (each row the mean over its window step, as the models with `action_step_mean` see it; column 1
-of the sample world's driving_command is the turn rate, column 0 the forward speed). The windows are cut into `bins`
+of the sample world's measured_motion is the turn rate, column 0 the forward speed). The windows are cut into `bins`
 groups of equal size by that number, and each group's futures are compared with holding the last prompt frame per
 horizon: PSNR gain in dB (and LPIPS against holding's, when the file has LPIPS). A mean over all windows can hide a
 group of windows where the futures lose to holding; this shows which motion it is. `breakdown` returns

@@ -109,3 +109,15 @@ def test_bench_train_runs_an_action_config_under_its_training_recipe(tmp_path, c
     bench.main(["--genie_config", str(tmp_path / "config.json"), "--steps", "1", "--warmup_steps", "0",
                 "--recipe", "published"])
     assert not ratios  # the published recipe reveals nothing
+
+
+def test_bench_play_serves_steps_and_compares_the_cached_step(tmp_path, capsys):
+    from tests.play_fixtures import tiny_dataset, tiny_model, tiny_tokenizer
+
+    data = tiny_dataset(tmp_path / "val", tiny_tokenizer(tmp_path / "tokenizer"))
+    load("bench_play").main(["--checkpoint_dir", str(tiny_model(tmp_path / "model")), "--data_dir", str(data),
+                             "--steps", "3", "--warmup", "1", "--model_steps", "6", "--num_threads", "1"])
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["http_steps_per_second"] > 0 and not result["real_world"]
+    assert set(result["model_step"]) == {"growing", "sliding"}  # T = 4: the context slides after 2 steps
+    assert all(phase["speedup"] > 0 for phase in result["model_step"].values())

@@ -38,7 +38,7 @@ def test_main_job_pipeline_tiny(tmp_path):
     subprocess.run(build, cwd=REPO, check=True, timeout=300)
     train = RawTokenDataset(sample / "train", window_size=16, stride=15)
     assert len(train) > 0 and train.metadata["hz"] == 35
-    assert set(train.action_names) == {"buttons", "driving_command"}
+    assert set(train.action_names) == {"buttons", "driving_command", "measured_motion"}
 
     # A second build is a no-op that keeps the datasets.
     stamp = (sample / "train" / "video.bin").stat().st_mtime
@@ -48,8 +48,8 @@ def test_main_job_pipeline_tiny(tmp_path):
     config = tmp_path / "genie.json"
     config.write_text(json.dumps({"num_layers": 1, "num_heads": 2, "d_model": 32, "T": 16, "S": 256,
                                   "image_vocab_size": 262144, "num_prompt_frames": 8, "copy_radius": 1,
-                                  "copy_match_input": True, "action_names": ["buttons", "driving_command"],
-                                  "action_dim": 7, "action_step_mean": True}))  # as the main command's config
+                                  "copy_match_input": True, "action_names": ["buttons"],
+                                  "action_dim": 5, "action_step_mean": True}))  # as the main command's config
     out = tmp_path / "model"
     env = dict(os.environ, SAMPLE_DIR=str(sample), OUT=str(out), GENIE_CONFIG=str(config),
                EVAL_ARGS="--max_examples 1", LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", NUM_EXAMPLES="1",

@@ -1,4 +1,4 @@
-"""play.py: the HTTP API the page uses (frames as PNG, the real world beside the model, one-line 400s on bad input)
+"""play.py (genie/play_server.py): the HTTP API the page uses (frames as PNG, the real world beside the model, one-line 400s on bad input)
 and the page itself in a real headless browser (Debian's chromium through selenium)."""
 import io
 import shutil
@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient  # noqa: E402
 from data import sample_world as sw  # noqa: E402
 from genie.world_env import WorldModelEnv  # noqa: E402
 from magvit2.build_sample import tokenize_split  # noqa: E402
-from play import PlaySession, build_app, real_world_for  # noqa: E402
+from genie.play_server import PlaySession, build_app, real_world_for  # noqa: E402
 from tests.play_fixtures import tiny_model, tiny_tokenizer  # noqa: E402
 
 

@@ -14,14 +14,14 @@ T, P, STRIDE = 6, 2, 2
 
 @pytest.fixture
 def world(tmp_path):
-    """A dataset of one-window clips whose turn rate (driving_command column 1) is -k in the k-th, and a per-window file whose futures gain k dB at every horizon (LPIPS k / 100, holding's 0.5)."""
+    """A dataset of one-window clips whose turn rate (measured_motion column 1) is -k in the k-th, and a per-window file whose futures gain k dB at every horizon (LPIPS k / 100, holding's 0.5)."""
     span = (T - 1) * STRIDE + 1
     num_windows = 7
     turn = np.repeat(-np.arange(num_windows, dtype=np.float32), span)
     drive = np.stack([np.ones_like(turn), turn], axis=1)
     video = np.zeros((len(turn), 4, 4), dtype=np.int64)
     segment_ids = np.repeat(np.arange(num_windows), span)  # one clip per window
-    data = write_token_dataset(tmp_path / "val", video, segment_ids, actions={"driving_command": drive},
+    data = write_token_dataset(tmp_path / "val", video, segment_ids, actions={"measured_motion": drive},
                                metadata={"vocab_size": 16})
     dataset = RawTokenDataset(data, window_size=T, stride=STRIDE, filter_overlaps=True)
     assert len(dataset) == num_windows

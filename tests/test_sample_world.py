@@ -27,9 +27,9 @@ def test_layout_shapes_and_dtypes(split):
     assert split["segment_ids"].shape == (n,) and split["segment_ids"].dtype == np.int32
     assert split["actions_buttons"].shape == (n, len(sw.BUTTON_NAMES))
     assert split["actions_buttons"].dtype == np.float32
-    assert split["actions_driving_command"].shape == (n, 2)
-    assert split["actions_driving_command"].dtype == np.float32
-    assert np.isfinite(split["actions_driving_command"]).all()
+    for key in ("actions_driving_command", "actions_measured_motion"):
+        assert split[key].shape == (n, 2) and split[key].dtype == np.float32
+        assert np.isfinite(split[key]).all()
     assert int(split["hz"]) == sw.HZ == 35
     assert list(split["button_names"]) == list(sw.BUTTON_NAMES)
     assert list(split["maps"]) == ["MAP01", "MAP01", "MAP04", "MAP04"]
@@ -59,40 +59,53 @@ def test_buttons_are_consistent_choices(split):
     assert (left + right).mean() > 0.05  # and turns now and then
 
 
-def test_driving_command_matches_buttons(split):
+def test_driving_command_is_what_the_buttons_command(split):
+    """driving_command is the commanded velocity (the 1X meaning): a function of the held buttons alone."""
     b, dc = split["actions_buttons"], split["actions_driving_command"]
+    np.testing.assert_allclose(dc, sw.driving_command(b, FAST))
     fwd, back, left, right = b[:, 0] == 1, b[:, 1] == 1, b[:, 2] == 1, b[:, 3] == 1
-    linear, angular = dc[:, 0], dc[:, 1]
+    np.testing.assert_allclose(dc[fwd & ~back, 0], FAST.top_speed)
+    np.testing.assert_allclose(dc[~fwd & ~back, 0], 0.0)
+    np.testing.assert_allclose(dc[left & ~right, 1], np.deg2rad(FAST.turn_speed) * sw.HZ, rtol=1e-6)
+    np.testing.assert_allclose(dc[right & ~left, 1], -np.deg2rad(FAST.turn_speed) * sw.HZ, rtol=1e-6)
+    assert abs(FAST.top_speed - 145.83) < 0.01  # Doom's terminal speed at half its walking thrust
+
+
+def test_measured_motion_follows_the_command_but_walls_stop_it(split):
+    b, dc, mm = split["actions_buttons"], split["actions_driving_command"], split["actions_measured_motion"]
+    fwd, left, right = b[:, 0] == 1, b[:, 2] == 1, b[:, 3] == 1
+    linear, angular = mm[:, 0], mm[:, 1]
     assert linear[fwd].mean() > 40  # map units/s; top walking speed is about 146
     assert linear[fwd].mean() > linear[~fwd].mean() + 20
-    if back.sum() > 10:
-        assert linear[back].mean() < linear[fwd].mean()
-    # Turning has no momentum: every turn tic rotates by exactly turn_speed degrees, left positive.
-    turn_rate = np.deg2rad(FAST.turn_speed) * sw.HZ
-    np.testing.assert_allclose(angular[left], turn_rate, rtol=0.01)  # ViZDoom rounds to its angle units
-    np.testing.assert_allclose(angular[right], -turn_rate, rtol=0.01)  # ViZDoom rounds to its angle units
+    # a sustained walk reaches the commanded top speed
+    assert abs(np.percentile(linear[fwd], 90) - FAST.top_speed) < 0.1 * FAST.top_speed
+    # Turning has no momentum: every turn tic rotates by exactly turn_speed degrees, as commanded.
+    np.testing.assert_allclose(angular[left], dc[left, 1], rtol=0.01)  # ViZDoom rounds to its angle units
+    np.testing.assert_allclose(angular[right], dc[right, 1], rtol=0.01)
     np.testing.assert_allclose(angular[~left & ~right], 0.0, atol=1e-3)
+    # Forward is commanded at full speed while walls and momentum make the measured speed lower
+    assert (linear[fwd] < 0.5 * FAST.top_speed).mean() > 0.05
 
 
-def test_driving_command_is_forward_difference_of_poses(split):
+def test_measured_motion_is_forward_difference_of_poses(split):
     """Row t describes the motion from frame t to frame t+1 (checked inside the first episode)."""
-    poses, dc = split["poses"][:300].astype(np.float64), split["actions_driving_command"][:300]
+    poses, mm = split["poses"][:300].astype(np.float64), split["actions_measured_motion"][:300]
     dist = np.hypot(*np.diff(poses[:, :2], axis=0).T) * sw.HZ
     turn = (np.diff(poses[:, 2]) + 180) % 360 - 180
-    np.testing.assert_allclose(dc[:-1, 1], np.deg2rad(turn) * sw.HZ, atol=1e-3)
+    np.testing.assert_allclose(mm[:-1, 1], np.deg2rad(turn) * sw.HZ, atol=1e-3)
     # linear is the displacement projected on the heading: never longer than it, and nearly all of it.
-    assert np.all(np.abs(dc[:-1, 0]) <= dist + 1e-2)
-    assert np.abs(dc[:-1, 0]).sum() > 0.9 * dist.sum()
+    assert np.all(np.abs(mm[:-1, 0]) <= dist + 1e-2)
+    assert np.abs(mm[:-1, 0]).sum() > 0.9 * dist.sum()
 
 
-def test_driving_command_convention():
+def test_measured_motion_convention():
     # Heading 90 degrees (north), moving 2 units north per tic, then turning left across the 360/0 wrap.
     poses = np.array([[0, 0, 90], [0, 2, 90], [0, 4, 90], [0, 4, 359], [0, 4, 1]], dtype=np.float32)
-    dc = sw.driving_command(poses, hz=35)
-    assert dc.shape == (4, 2) and dc.dtype == np.float32
-    np.testing.assert_allclose(dc[:2], [[70, 0], [70, 0]], atol=1e-3)
-    assert dc[2, 1] < 0  # 90 -> 359 is a 91 degree right turn
-    np.testing.assert_allclose(dc[3], [0, np.deg2rad(2) * 35], atol=1e-4)  # 359 -> 1 is +2 degrees
+    mm = sw.measured_motion(poses, hz=35)
+    assert mm.shape == (4, 2) and mm.dtype == np.float32
+    np.testing.assert_allclose(mm[:2], [[70, 0], [70, 0]], atol=1e-3)
+    assert mm[2, 1] < 0  # 90 -> 359 is a 91 degree right turn
+    np.testing.assert_allclose(mm[3], [0, np.deg2rad(2) * 35], atol=1e-4)  # 359 -> 1 is +2 degrees
 
 
 def _fake_episode(poses):
@@ -113,7 +126,8 @@ def test_same_seed_is_byte_identical_and_seeds_differ():
     a = sw.generate_split(seed=3, **kwargs)
     b = sw.generate_split(seed=3, **kwargs)
     c = sw.generate_split(seed=4, **kwargs)
-    for key in ("frames", "segment_ids", "actions_buttons", "actions_driving_command", "poses"):
+    for key in ("frames", "segment_ids", "actions_buttons", "actions_driving_command", "actions_measured_motion",
+                "poses"):
         assert a[key].tobytes() == b[key].tobytes(), key
     assert a["frames"].tobytes() != c["frames"].tobytes()
 
@@ -235,6 +249,7 @@ def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
     with np.load(out / "train.npz") as f:
         assert f["frames"].shape == (30, 64, 64, 3)
         assert f["actions_buttons"].shape == (30, 5) and f["actions_driving_command"].shape == (30, 2)
+        assert f["actions_measured_motion"].shape == (30, 2)
         assert int(f["hz"]) == 35 and list(f["maps"]) == ["MAP01"]
     with np.load(out / "val.npz") as f:
         assert list(f["maps"]) == ["MAP18"]
@@ -257,7 +272,7 @@ def test_other_walker_turns_by_its_turn_speed():
     left, right = data["actions_buttons"][:, 2] == 1, data["actions_buttons"][:, 3] == 1
     assert left.sum() + right.sum() > 0
     turn_rate = np.deg2rad(1.75) * sw.HZ  # twice the default's
-    angular = data["actions_driving_command"][:, 1]
+    angular = data["actions_measured_motion"][:, 1]
     np.testing.assert_allclose(angular[left], turn_rate, rtol=0.02)
     np.testing.assert_allclose(angular[right], -turn_rate, rtol=0.02)
     with pytest.raises(ValueError, match="turn_speed > 0"):

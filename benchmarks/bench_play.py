@@ -1,0 +1,156 @@
+"""Playing speed: steps per second through play.py's HTTP API, and the sliding-window step against recomputing the
+window.
+
+    python benchmarks/bench_play.py --checkpoint_dir data/genie_model/final_checkpt --data_dir data/unseen/val
+
+1. play.py's server runs in this process (uvicorn on a free local port, the real world beside the model when the
+   data is a sample world) and a client posts /reset, then --steps /step requests one after the other, cycling
+   through held buttons; each returns the decoded frame as a PNG. Steps per second = steps / wall time, decoding,
+   PNG and HTTP included, after --warmup steps.
+2. The model's step alone (no decoding), from the same start: genie.inference.next_frame, which computes the
+   context's temporal keys/values once per step (and keeps them while the context grows), against
+   genie.reference.next_frame_recomputed, which recomputes the whole window at every MaskGIT step (the published
+   way), on the same contexts with the same random state: milliseconds per step and the ratio, while the context
+   grows and once it slides (T-1 frames).
+The last line is JSON.
+"""
+import argparse
+import json
+import socket
+import sys
+import threading
+import time
+import urllib.request
+
+import numpy as np
+import torch
+
+from common.cli import add_num_threads_arg, apply_cpu_settings, finite_float, positive_int, run_main
+
+ACTIONS = (["MOVE_FORWARD"], ["TURN_LEFT"], ["MOVE_FORWARD", "TURN_RIGHT"], [], ["TURN_RIGHT"], ["MOVE_BACKWARD"])
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--checkpoint_dir", default="data/genie_model/final_checkpt", help="the model to play")
+    p.add_argument("--data_dir", default="data/unseen/val", help="token dataset of the starts")
+    p.add_argument("--steps", type=positive_int, default=64, help="timed /step requests (default: %(default)s)")
+    p.add_argument("--warmup", type=int, default=8, help="untimed /step requests first (default: %(default)s)")
+    p.add_argument("--model_steps", type=positive_int, default=24,
+                   help="steps of the cached-vs-recomputed comparison (default: %(default)s)")
+    p.add_argument("--temperature", type=finite_float, default=1.0, help="play.py's --temperature")
+    p.add_argument("--no_real_world", action="store_true", help="serve without the real world beside the model")
+    p.add_argument("--seed", type=int, default=0)
+    add_num_threads_arg(p)
+    args = p.parse_args(argv)
+    if args.warmup < 0:
+        p.error(f"--warmup must be >= 0, got {args.warmup}")
+    return args
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def post(url: str, body: dict) -> bytes:
+    request = urllib.request.Request(url, data=json.dumps(body).encode(), method="POST",
+                                     headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=60) as response:
+        return response.read()
+
+
+def http_steps_per_second(session, args) -> float:
+    """Serve the session with uvicorn in a thread and time /step requests from a client in this thread."""
+    import uvicorn
+
+    from genie.play_server import build_app
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(build_app(session), host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        while not server.started:
+            time.sleep(0.02)
+        base = f"http://127.0.0.1:{port}"
+        post(f"{base}/reset", {"window": 0})
+        for i in range(args.warmup):
+            post(f"{base}/step", {"action": ACTIONS[i % len(ACTIONS)]})
+        t0 = time.perf_counter()
+        for i in range(args.steps):
+            png = post(f"{base}/step", {"action": ACTIONS[i % len(ACTIONS)]})
+            assert png[:8] == b"\x89PNG\r\n\x1a\n"
+        return args.steps / (time.perf_counter() - t0)
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+
+
+def model_step_times(env, args) -> dict:
+    """ms per step of next_frame (cached) and next_frame_recomputed on the same contexts, growing and sliding."""
+    from genie.inference import next_frame
+    from genie.reference import next_frame_recomputed
+
+    env.reset(seed=args.seed, options={"window": 0})
+    times = {"growing": ([], []), "sliding": ([], [])}
+    cache, T = None, env.T
+    for i in range(args.model_steps):
+        tokens, actions, latent = env._tokens, env._actions.clone(), env._latent
+        if len(tokens) == T:
+            tokens, actions, latent, cache = tokens[1:], actions[1:], latent[1:], None
+        phase = "growing" if len(tokens) < T - 1 else "sliding"
+        if env.buttons:
+            row = env.action_row(np.isin(env.button_names, ACTIONS[i % len(ACTIONS)]).astype(np.int8))
+        else:  # a latent action id, or a row of zeros for a model of other action streams
+            row = env.action_row(0 if env.latent or not env.model.config.action_dim
+                                 else np.zeros(env.model.config.action_dim))
+        if env.model.config.action_dim:
+            actions[-1] = row
+        latent = torch.cat([latent, row.view(1) if env.latent else torch.tensor([env.model.config.num_latent_actions])])
+        state = env._generator.get_state()
+        t0 = time.perf_counter()
+        frame, cache = next_frame(env.model, tokens, actions, latent, cache, env.maskgit_steps, env.temperature,
+                                  torch.Generator().set_state(state))
+        t1 = time.perf_counter()
+        again = next_frame_recomputed(env.model, tokens, actions, latent, env.maskgit_steps, env.temperature,
+                                      torch.Generator().set_state(state))
+        t2 = time.perf_counter()
+        if not torch.equal(frame, again):
+            raise AssertionError(f"step {i}: the cached step and the recomputed window disagree")
+        times[phase][0].append(t1 - t0)
+        times[phase][1].append(t2 - t1)
+        env.step(int(row) if row.dim() == 0 else row.numpy())  # move the env on (its own cache; not timed)
+    out = {}
+    for phase, (cached, full) in times.items():
+        if cached:
+            out[phase] = {"steps": len(cached), "cached_ms": 1000 * float(np.mean(cached)),
+                          "recomputed_ms": 1000 * float(np.mean(full)), "speedup": float(np.mean(full) / np.mean(cached))}
+    return out
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    apply_cpu_settings(args.num_threads)
+    from genie.play_server import make_session
+
+    session = make_session(argparse.Namespace(
+        checkpoint_dir=args.checkpoint_dir, data_dir=args.data_dir, tokenizer_ckpt=None, device="cpu",
+        copy_bias=2.0, temperature=args.temperature, maskgit_steps=2, prompt_frames=None,
+        no_real_world=args.no_real_world, seed=args.seed))
+    steps_per_second = http_steps_per_second(session, args)
+    real = session.real_env is not None
+    print(f"/step through HTTP: {steps_per_second:.1f} steps/s (decoding + PNG + HTTP, real world beside: "
+          f"{'yes' if real else 'no'}, temperature {args.temperature}, {torch.get_num_threads()} threads)")
+    model = model_step_times(session.env, args)
+    for phase, t in model.items():
+        print(f"model step, context {phase}: cached {t['cached_ms']:.1f} ms, recomputing the window "
+              f"{t['recomputed_ms']:.1f} ms: {t['speedup']:.2f}x ({t['steps']} steps, the same frames)")
+    print(json.dumps({"http_steps_per_second": steps_per_second, "real_world": real,
+                      "temperature": args.temperature, "threads": torch.get_num_threads(), "model_step": model}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_main("bench_play.py", main))
