@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
 # The main job on the embedded sample world (run ./build.sh first):
 #   1. train a small action-conditioned GENIE on data/sample/train -> data/genie_model/final_checkpt
-#      (genie/configs/sample_world_actions.json: the previous-frame pointer at radius 4, conditioned on the walker's
-#      buttons and driving command averaged over each window step; Muon for the transformer's matrices, AdamW for
-#      the rest: common/muon.py; learning rate 1e-2 decaying linearly to zero; weight decay 0.4, WEIGHT_DECAY)
+#      (genie/configs/sample_world_actions.json: the previous-frame pointer at radius 4, conditioned on the buttons
+#      the walker held, averaged over each window step: what a player commands; Muon for the transformer's
+#      matrices, AdamW for the rest: common/muon.py; learning rate 1e-2 decaying linearly to zero; weight decay 0.4,
+#      WEIGHT_DECAY)
 #   2. generate from held-out prompts of data/sample/val, playing their recorded actions
 #      -> data/genie_model/generated (tokens)
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
 #   4. evaluate with the challenge metrics, the copy-the-last-frame baselines and the rollout protocol (greedy, and
 #      sampled: whole tokens at temperature 1) -> data/genie_model/*.json
+#   5. print the command that plays the model in a browser (play.py)
 # Futures are decoded with the pointer's --copy_bias 2 (COPY_BIAS), greedy copies from the single most weighted
 # neighbour (--greedy_tokens best_neighbour, GREEDY_TOKENS).
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
@@ -107,3 +109,4 @@ echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png"
 echo "metrics: $OUT/metrics.json (LPIPS: $OUT/metrics_lpips.json; copy baselines: $OUT/baselines.json;"
 echo "         rollouts: $OUT/metrics_rollout.json, sampled: $OUT/metrics_rollout_sampled.json)"
 [ -z "$SCORED_UNSEEN" ] || echo "unseen maps:$SCORED_UNSEEN"
+echo "play it in a browser: $PY play.py --checkpoint_dir $OUT/final_checkpt --data_dir $VAL"

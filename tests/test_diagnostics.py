@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import evaluate
+import play
 import genie.evaluation
 from tests.cli_runner import run_as_main
 import genie.generate
@@ -239,6 +240,11 @@ def test_the_decoding_flags_are_one_definition():
         if name in ("diagnostics copy_ceiling", "diagnostics breakdown"):  # no model decodes there
             assert not set(decoding) & set(flags), name
             continue
+        if name == "diagnostics control":  # it checks the model as play.py plays it: play.py's sampler
+            play_args = capture_parser(play, []).parse_args([])
+            for flag in ("--maskgit_steps", "--temperature", "--copy_bias"):
+                assert flags[flag].default == getattr(play_args, flag[2:]), flag
+            continue
         described = {flag: (flags[flag].default, flags[flag].choices, flags[flag].help) for flag in decoding}
         seen.setdefault("first", described)
         assert described == seen["first"], name
@@ -246,7 +252,7 @@ def test_the_decoding_flags_are_one_definition():
 
 
 def test_help_of_every_command(capsys):
-    for argv in ([], ["copy_ceiling"], ["per_window"], ["breakdown"], ["withheld_actions"]):
+    for argv in ([], ["copy_ceiling"], ["per_window"], ["breakdown"], ["withheld_actions"], ["control"]):
         with pytest.raises(SystemExit) as exit_info:
             main([*argv, "--help"])
         assert exit_info.value.code == 0

