@@ -14,6 +14,7 @@ built world.
 import json
 import math
 import tempfile
+import weakref
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -97,14 +98,20 @@ class DoomEnv(gym.Env):
         self.observation_space = spaces.Box(0, 255, (S, S, 3), dtype=np.uint8)
         self.action_space = spaces.MultiBinary(len(BUTTON_NAMES))
         self._gamma_lut = gamma_table(self.cfg.gamma)
-        self._workdir = tempfile.TemporaryDirectory(prefix="vizdoom.", ignore_cleanup_errors=True)
-        self._game, self._map = None, None
-        self._frame, self._start = None, {}
+        workdir = tempfile.TemporaryDirectory(prefix="vizdoom.", ignore_cleanup_errors=True)
+        self._workdir, self._games = workdir.name, []  # the engine (at most one), closed before its folder goes
+        self._shutdown = weakref.finalize(self, _shut_down, self._games, workdir)
+        self._map, self._frame, self._start = None, None, {}
+
+    @property
+    def _game(self):
+        return self._games[0] if self._games else None
 
     def _game_on(self, map_name: str):
         if self._map != map_name:
             self.close_game()
-            self._game, self._map = make_game(map_name, self.cfg, workdir=self._workdir.name), map_name
+            self._games.append(make_game(map_name, self.cfg, workdir=self._workdir))
+            self._map = map_name
         return self._game
 
     def _pose(self) -> tuple:
@@ -160,13 +167,16 @@ class DoomEnv(gym.Env):
         return None if self.render_mode is None else self._frame
 
     def close_game(self) -> None:
-        if self._game is not None:
-            self._game.close()
-        self._game, self._map = None, None
+        while self._games:
+            self._games.pop().close()
+        self._map = None
 
     def close(self):
-        self.close_game()
-        if self._workdir is not None:
-            self._workdir.cleanup()
-            self._workdir = None
+        self._shutdown()  # the engine, then its folder; also at garbage collection or exit if never called
         super().close()
+
+
+def _shut_down(games: list, workdir: tempfile.TemporaryDirectory) -> None:
+    while games:
+        games.pop().close()
+    workdir.cleanup()
