@@ -42,6 +42,7 @@ from genie.evaluation import (EvaluationError, add_protocol_args, add_save_outpu
                               check_protocol_args, check_window_args, delta_psnr, frame_scorer, load_model,
                               model_windows, rollout_evaluate, start_process, teacher_forced_run)
 from genie.model import STMaskGIT
+from genie.policy_eval import POLICIES_HELP, add_policy_args, check_policy_args, run_policies
 from lam.data import valid_targets
 from lam.probe import action_probe, transition_labels
 
@@ -54,7 +55,7 @@ BUTTONS_NAME = "buttons"  # the sample world's true actions, labels of the laten
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="evaluate.py", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_protocol_args(parser)
+    add_protocol_args(parser, ("policies",), POLICIES_HELP)
     add_window_args(parser)
     add_save_outputs_arg(parser)
     parser.add_argument("--delta_psnr_seeds", type=int, default=1,
@@ -65,8 +66,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--train_data_dir", default=DEFAULT_TRAIN_DIR,
                         help="Teacher-forced protocol, latent-action checkpoints: the token dataset whose latent "
                              "actions and buttons fit the latent action probe (default: %(default)s).")
+    add_policy_args(parser)
     args = parser.parse_args(argv)
     check_window_args(parser, args)
+    check_policy_args(parser, args)
     if args.delta_psnr_seeds < 1:
         parser.error(f"--delta_psnr_seeds must be >= 1, got {args.delta_psnr_seeds}")
     check_protocol_args(parser, args)
@@ -124,6 +127,8 @@ def teacher_forced_result(model: STMaskGIT, loader, dataset: RawTokenDataset, ar
 
 def run(args: argparse.Namespace) -> dict:
     """The JSON line of --protocol on --checkpoint_dir and --val_data_dir."""
+    if args.protocol == "policies":
+        return run_policies(args)
     device = start_process(args)
     model = load_model(args, device)
     dataset, _, loader = model_windows(model, args)

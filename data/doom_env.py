@@ -101,7 +101,7 @@ class DoomEnv(gym.Env):
         workdir = tempfile.TemporaryDirectory(prefix="vizdoom.", ignore_cleanup_errors=True)
         self._workdir, self._games = workdir.name, []  # the engine (at most one), closed before its folder goes
         self._shutdown = weakref.finalize(self, _shut_down, self._games, workdir)
-        self._map, self._frame, self._start = None, None, {}
+        self._map, self._frame, self._start, self._explorer = None, None, {}, None
 
     @property
     def _game(self):
@@ -134,17 +134,27 @@ class DoomEnv(gym.Env):
         frame = int(options.get("frame", self.np_random.integers(0, MAX_START_FRAME)))
         if frame < 0:
             raise EnvInputError(f"frame must be >= 0, got {frame}")
-        game = self._game_on(map_name)
-        policy = start_walk(game, episode_seed, self.cfg)
-        for _ in range(frame):  # the explorer's recorded tics up to the start frame
-            if game.is_episode_finished():
-                raise EnvInputError(f"{map_name}: the walk of seed {episode_seed} ends before frame {frame}")
-            state = game.get_state()
-            game.make_action(engine_action(policy(state.depth_buffer, state.game_variables[:2]), self.cfg))
-        if game.is_episode_finished():
-            raise EnvInputError(f"{map_name}: the walk of seed {episode_seed} ends at frame {frame}")
+        self._explorer = start_walk(self._game_on(map_name), episode_seed, self.cfg)
         self._start = {"map": map_name, "episode_seed": episode_seed, "frame": frame}
+        self.follow_explorer(frame)  # the explorer's recorded tics up to the start frame
         return self._observe(), {**self._start, "pose": self._pose()}
+
+    def follow_explorer(self, tics: int) -> np.ndarray:
+        """Go on with the recorded walk (the explorer that walked it) for `tics` tics; returns the buttons it held,
+        (tics, 5) float32. The frame after them is `render()`'s / the next observation."""
+        game, held = self._game, []
+        for _ in range(tics):
+            if game.is_episode_finished():
+                break
+            state = game.get_state()
+            buttons = self._explorer(state.depth_buffer, state.game_variables[:2])
+            held.append(buttons)
+            game.make_action(engine_action(buttons, self.cfg))
+        if game.is_episode_finished():
+            raise EnvInputError(f"{self._start['map']}: the walk of seed {self._start['episode_seed']} ends before "
+                                f"frame {self._start['frame']} + {tics} tics")
+        self._observe()
+        return np.asarray(held, dtype=np.float32).reshape(tics, len(BUTTON_NAMES))
 
     def step(self, action):
         if self._game is None or self._frame is None:
@@ -165,6 +175,16 @@ class DoomEnv(gym.Env):
 
     def render(self):
         return None if self.render_mode is None else self._frame
+
+    @property
+    def frame(self) -> np.ndarray:
+        """The latest observation."""
+        return self._frame
+
+    @property
+    def pose(self) -> tuple:
+        """(x, y, heading in degrees) now."""
+        return self._pose()
 
     def close_game(self) -> None:
         while self._games:

@@ -102,14 +102,14 @@ def add_window_args(parser, checkpoint: bool = True) -> None:
         parser.set_defaults(seed=0)
 
 
-def add_protocol_args(parser) -> None:
-    """--protocol (teacher_forced or rollout) and --num_prompt_frames (rollout only); check with
-    `check_protocol_args`."""
-    parser.add_argument("--protocol", choices=PROTOCOLS, default=PROTOCOLS[0],
+def add_protocol_args(parser, more: Tuple[str, ...] = (), more_help: str = "") -> None:
+    """--protocol (teacher_forced or rollout, and the protocols `more` that `more_help` describes) and
+    --num_prompt_frames (rollout only); check with `check_protocol_args`."""
+    parser.add_argument("--protocol", choices=PROTOCOLS + tuple(more), default=PROTOCOLS[0],
                         help="teacher_forced (default): each frame predicted from the ground-truth frames before it, "
                              "scored by CE, token accuracy, LPIPS and s/frame; rollout: prompt with the first "
                              "--num_prompt_frames frames of each window, generate the rest free-running, score PSNR "
-                             "/ SSIM / LPIPS per horizon against holding the last prompt frame.")
+                             "/ SSIM / LPIPS per horizon against holding the last prompt frame" + more_help + ".")
     add_prompt_arg(parser, "Rollout protocol only: ")
 
 
@@ -173,6 +173,11 @@ def check_protocol_args(parser, args: argparse.Namespace) -> None:
     """Usage errors of flags that one protocol only takes (`add_protocol_args`, `add_save_outputs_arg`,
     `add_per_window_arg` where the parser has them)."""
     per_window = getattr(args, "per_window_out", None)
+    if args.protocol == "policies":
+        if args.save_outputs_dir is not None:
+            parser.error("--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
+                         "policies")
+        return
     if args.protocol == "rollout":
         check_prompt_arg(parser, args)
         if args.save_outputs_dir is not None:

@@ -126,15 +126,15 @@ class WorldModelEnv(gym.Env):
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
         """options (all optional): "window" (index of a window of `starts`; default: drawn), or "frames" ((N, H,
         W, 3) uint8 images, encoded with the tokenizer) or "tokens" ((N, h, w) ids) to start from instead (the
-        last T-1 of them; their action rows unknown); "prompt_frames" (a window's frames given, default the
-        env's)."""
+        last T-1 of them), with "actions" (the real action rows between them, (N-1, D); default unknown);
+        "prompt_frames" (a window's frames given, default the env's)."""
         super().reset(seed=seed)
         self._generator.manual_seed(int(self.np_random.integers(0, 2**63 - 1)))
         options = dict(options or {})
-        unknown = set(options) - {"window", "frames", "tokens", "prompt_frames"}
+        unknown = set(options) - {"window", "frames", "tokens", "actions", "prompt_frames"}
         if unknown:
             raise WorldEnvError(f"unknown reset option(s) {sorted(unknown)}: WorldModelEnv takes window, frames, "
-                                f"tokens, prompt_frames")
+                                f"tokens, actions, prompt_frames")
         if sum(k in options for k in ("window", "frames", "tokens")) > 1:
             raise WorldEnvError("give one of the reset options window, frames and tokens")
         window = None
@@ -143,6 +143,8 @@ class WorldModelEnv(gym.Env):
                       else self._check_tokens(options["tokens"]))[-(self.T - 1):]
             n = len(tokens)
             actions = np.full((n, max(self.model.config.action_dim, 1)), np.nan, dtype=np.float32)
+            if "actions" in options:  # the rows between the given frames
+                actions[:-1] = self._check_rows(options["actions"], n - 1)
             latent = np.full(n, self.model.config.num_latent_actions, dtype=np.int64)
         else:
             window = self._window_index(options.get("window"))
@@ -182,6 +184,14 @@ class WorldModelEnv(gym.Env):
         """Dataset frame index of the last given frame of a start from window `window` (where the recorded walk
         goes on)."""
         return int(self.starts.valid_start_inds[window]) + ((prompt_frames or self.prompt_frames) - 1) * WINDOW_STRIDE
+
+    def _check_rows(self, rows, n: int) -> np.ndarray:
+        dim = self.model.config.action_dim
+        r = np.asarray(rows, dtype=np.float32)
+        if not dim or r.ndim != 2 or r.shape[1] != dim or len(r) < n:
+            raise WorldEnvError(f"actions must be the {n} real action rows (n, {dim}) between the given frames "
+                                f"(a model with real actions), got shape {r.shape}")
+        return r[len(r) - n:]
 
     def _check_tokens(self, tokens) -> np.ndarray:
         config = self.model.config

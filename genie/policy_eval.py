@@ -1,0 +1,300 @@
+"""Rank policies inside a world model and check the ranking against the real sample world
+(`./evaluate.py --protocol policies`).
+
+The task is getting away from the start: a policy's return is how far from its start (map units, 64 ~ 2 m) it ends
+after K window steps. Not the path length: a policy that shuttles forward and back travels far and gets nowhere, and
+one that walks into a wall keeps pressing forward and stays put.
+
+Each start is a recorded walk of the explorer on one of the maps (episode seed and frame drawn from --seed): the
+real world replays it to the start frame, and its last P frames (15 tics apart) and the buttons held between them
+are the world model's prompt. From the same start every policy then drives, for K steps, closed loop:
+- the real world (data/doom_env.py): `real_return` from the engine's poses;
+- the world model (genie/world_env.py): the policy sees the model's frames, its buttons drive the model;
+  `model_return` is the motion estimator's (genie/motion_estimator.py: frames in, motion out, no actions read)
+  dead reckoning of the model's frames;
+- `real_frames_return`: the same estimator on the real world's frames (what a perfect world model would reach);
+- `blind_return`: dead reckoning from the commanded buttons alone, as if there were no walls (no world model).
+The rankings of the policies by each estimate are scored against the ranking by `real_return` (genie/ranking.py).
+A policy's random numbers and the model's sampler get the same seed in both worlds for a start (common random
+numbers).
+"""
+import time
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from common.errors import InputError
+from data.sample_world import BUTTON_NAMES, HZ
+from genie.motion_estimator import distance_from_start
+from genie.policies import check_action
+from genie.ranking import kendall, pairwise_accuracy, regret_at_1, spearman
+
+STRIDE = 15  # tics per step
+MAX_START_TRIES = 20
+
+
+class PolicyEvalError(InputError):
+    """Maps, starts or settings the policy protocol cannot use."""
+
+
+@dataclass
+class Start:
+    """A start: where the real world begins (`DoomEnv.reset` options) and the world model's prompt."""
+    options: dict  # map, episode_seed, frame: the first prompt frame of the recorded walk
+    prompt_frames: np.ndarray  # (P, 64, 64, 3) uint8, 15 tics apart; the last is where the policies begin
+    prompt_rows: np.ndarray  # (P - 1, 5) the buttons' means over each step between them
+    seed: int
+
+
+def make_starts(real_env, maps: Sequence[str], starts_per_map: int, prompt_frames: int, seed: int,
+                latest_frame: int = 900) -> List[Start]:
+    """`starts_per_map` starts on each map, drawn from `seed`: a walk seed and a frame of it (one whose walk gets
+    there without leaving the map)."""
+    starts = []
+    for m, map_name in enumerate(maps):
+        rng = np.random.default_rng([seed, m])
+        for i in range(starts_per_map):
+            for _ in range(MAX_START_TRIES):
+                options = {"map": map_name, "episode_seed": int(rng.integers(2**32 - 1)),
+                           "frame": int(rng.integers(0, latest_frame))}
+                try:
+                    starts.append(replay_start(real_env, options, prompt_frames, seed * 100_000 + m * 1000 + i))
+                    break
+                except InputError:  # the walk left the map (an exit) before the start: draw another
+                    continue
+            else:
+                raise PolicyEvalError(f"{map_name}: no walk reached a start in {MAX_START_TRIES} tries")
+    return starts
+
+
+def replay_start(real_env, options: dict, prompt_frames: int, seed: int) -> Start:
+    """Put the real world at the start (the recorded walk's frame + (P-1) steps) and collect the prompt."""
+    frame, _ = real_env.reset(options=options)
+    frames, rows = [frame], []
+    for _ in range(prompt_frames - 1):
+        rows.append(real_env.follow_explorer(STRIDE).mean(axis=0))
+        frames.append(real_env.frame)
+    return Start(options, np.stack(frames), np.asarray(rows, dtype=np.float32).reshape(-1, len(BUTTON_NAMES)), seed)
+
+
+class RealWorld:
+    """The real sample world behind the interface the protocol drives a world through."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def begin(self, start: Start) -> np.ndarray:
+        replay_start(self.env, start.options, len(start.prompt_frames), start.seed)
+        self.start_pose = self.env.pose
+        return self.env.frame
+
+    def step(self, buttons: np.ndarray) -> np.ndarray:
+        return self.env.step(buttons)[0]
+
+
+class ModelWorld:
+    """A world model environment (WorldModelEnv) behind the same interface, started from the start's prompt."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def begin(self, start: Start) -> np.ndarray:
+        frame, _ = self.env.reset(seed=start.seed, options={"frames": start.prompt_frames,
+                                                           "actions": start.prompt_rows})
+        return frame
+
+    def step(self, buttons: np.ndarray) -> np.ndarray:
+        return self.env.step(buttons)[0]
+
+
+def drive(world, policy, name: str, start: Start, steps: int):
+    """Run `policy` for `steps` steps in `world` from `start`: (frames (steps + 1, 64, 64, 3), buttons (steps, 5))."""
+    from data.doom_env import buttons_from_names
+
+    frame = world.begin(start)
+    policy.reset(start.seed)
+    frames, held = [frame], []
+    for _ in range(steps):
+        buttons = buttons_from_names(check_action(policy.act(frame), name))
+        frame = world.step(buttons)
+        frames.append(frame)
+        held.append(buttons)
+    return np.stack(frames), np.stack(held)
+
+
+def blind_steps(held_K5: np.ndarray, cfg) -> np.ndarray:
+    """(K, 2) per-step (forward map units, turn degrees) that the held buttons command, walls ignored."""
+    held = held_K5.astype(np.float64)
+    forward = (held[:, 0] - held[:, 1]) * cfg.top_speed * STRIDE / HZ
+    turn = (held[:, 2] - held[:, 3]) * cfg.turn_speed * STRIDE
+    return np.stack([forward, turn], axis=1)
+
+
+def evaluate_policies(policies: Dict[str, object], real_env, model_world, estimator, starts: List[Start],
+                      steps: int, progress: bool = True) -> dict:
+    """Every policy from every start in both worlds; the protocol's JSON result (module doc)."""
+    real_world = RealWorld(real_env)
+    returns = {name: {k: [] for k in ("real", "model", "real_frames", "blind")} for name in policies}
+    t0 = time.time()
+    bar = tqdm(total=len(policies) * len(starts), desc="policies", unit="episode", disable=not progress)
+    for start in starts:
+        for name, policy in policies.items():
+            real_frames, held = drive(real_world, policy, name, start, steps)
+            r = returns[name]
+            r["real"].append(float(np.hypot(real_env.pose[0] - real_world.start_pose[0],
+                                            real_env.pose[1] - real_world.start_pose[1])))
+            r["real_frames"].append(distance_from_start(estimator.motion(real_frames)))
+            r["blind"].append(distance_from_start(blind_steps(held, real_env.cfg)))
+            model_frames, _ = drive(model_world, policy, name, start, steps)
+            r["model"].append(distance_from_start(estimator.motion(model_frames)))
+            bar.update(1)
+    bar.close()
+    return summarize(returns, steps, len(starts), time.time() - t0)
+
+
+def summarize(returns: Dict[str, Dict[str, list]], steps: int, num_starts: int, seconds: float) -> dict:
+    names = list(returns)
+    rows = []
+    for name in names:
+        row = {"name": name}
+        for kind in ("real", "model", "real_frames", "blind"):
+            values = np.asarray(returns[name][kind])
+            row[f"{kind}_return"] = float(values.mean())
+            row[f"{kind}_return_std"] = float(values.std())
+        rows.append(row)
+    truth = [r["real_return"] for r in rows]
+
+    def scores(kind: str) -> list:
+        return [r[f"{kind}_return"] for r in rows]
+
+    best = max(truth)
+    regret = regret_at_1(truth, scores("model"))
+    return {
+        "protocol": "policies", "steps": steps, "num_starts": num_starts, "policies": rows,
+        "spearman": spearman(truth, scores("model")), "kendall": kendall(truth, scores("model")),
+        "pairwise_accuracy": pairwise_accuracy(truth, scores("model")), "regret_at_1": regret,
+        "regret_at_1_share": regret / best if best > 0 else 0.0,
+        "blind_spearman": spearman(truth, scores("blind")),
+        "real_frames_spearman": spearman(truth, scores("real_frames")),
+        "model_pick": names[int(np.argmax(scores("model")))], "real_best": names[int(np.argmax(truth))],
+        "time_s": seconds,
+    }
+
+
+def ranking_lines(result: dict) -> List[str]:
+    """Readable lines of a result: one per policy, best real return first, then the metrics."""
+    lines = [f"{'policy':<20} {'real':>7} {'model':>7} {'real frames':>11} {'blind':>7}   (map units from the start)"]
+    for r in sorted(result["policies"], key=lambda r: -r["real_return"]):
+        lines.append(f"{r['name']:<20} {r['real_return']:7.1f} {r['model_return']:7.1f} "
+                     f"{r['real_frames_return']:11.1f} {r['blind_return']:7.1f}")
+    lines.append(f"spearman {result['spearman']:.3f} (blind {result['blind_spearman']:.3f}, real frames "
+                 f"{result['real_frames_spearman']:.3f}), kendall {result['kendall']:.3f}, pairwise accuracy "
+                 f"{result['pairwise_accuracy']:.3f}, regret@1 {result['regret_at_1']:.1f} "
+                 f"({100 * result['regret_at_1_share']:.1f} % of the best)")
+    return lines
+
+
+def check_maps_given(maps: Optional[Sequence[str]]) -> List[str]:
+    if not maps:
+        raise PolicyEvalError("--maps: name at least one map")
+    return list(maps)
+
+
+# ------------------------------------------------------------------ evaluate.py --protocol policies
+POLICIES_HELP = ("; policies: rank --policies by how far each gets from its start in --steps steps, inside the world "
+                 "model and in the real sample world, from the same starts (genie/policy_eval.py)")
+DEFAULT_MAPS = ("MAP02", "MAP03", "MAP06", "MAP07")  # the first set of maps no run trains on
+
+
+def add_policy_args(parser) -> None:
+    from genie.policies import BUILTIN_POLICIES
+
+    group = parser.add_argument_group("policies protocol", "Ranking policies inside the world model (--protocol "
+                                                           "policies; the decoding flags set the model's sampler).")
+    group.add_argument("--policies", nargs="+", default=list(BUILTIN_POLICIES),
+                       help="Built-in policy names or path/to/file.py:ClassName (default: the built-in suite, "
+                            "%(default)s).")
+    group.add_argument("--maps", nargs="+", default=list(DEFAULT_MAPS),
+                       help="Maps of the starts (default: %(default)s, never trained on).")
+    group.add_argument("--starts", type=int, default=4, help="Starts per map (default: %(default)s).")
+    group.add_argument("--steps", type=int, default=16,
+                       help="Window steps each policy drives, 15 tics each (default: %(default)s, 6.9 s).")
+    group.add_argument("--policy_dir", default="data/policies",
+                       help="Where the cloned policies and the motion estimator are kept; trained there on first use "
+                            "from --policy_train_data (default: %(default)s).")
+    group.add_argument("--policy_train_data", default="data/sample/raw/train.npz",
+                       help="Recorded walks (frames, buttons, measured motion) that the cloned policies and the "
+                            "motion estimator learn from (default: %(default)s).")
+
+
+def check_policy_args(parser, args) -> None:
+    for name in ("starts", "steps"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+
+
+def ensure_trained(args) -> None:
+    """Train the cloned policies and the motion estimator into --policy_dir when they are not there."""
+    from pathlib import Path
+
+    from genie.motion_estimator import train_motion_estimator
+    from genie.policies import BC_BUDGETS, train_bc_policies
+
+    policy_dir = Path(args.policy_dir)
+    wanted_bc = any(p.partition("_random")[0] in BC_BUDGETS for p in args.policies if ":" not in p)
+    missing_bc = not all((policy_dir / f"{n}.safetensors").is_file() for n in BC_BUDGETS)
+    missing_estimator = not (policy_dir / "motion_estimator.safetensors").is_file()
+    if (wanted_bc and missing_bc) or missing_estimator:
+        if not Path(args.policy_train_data).is_file():
+            raise PolicyEvalError(f"--policy_train_data {args.policy_train_data} not found: the recorded walks that "
+                                  f"the cloned policies and the motion estimator learn from (./build.sh makes them)")
+    if wanted_bc and missing_bc:
+        train_bc_policies(args.policy_train_data, policy_dir, seed=0)
+    if missing_estimator:
+        train_motion_estimator(args.policy_train_data, policy_dir / "motion_estimator.safetensors", seed=0)
+
+
+def run_policies(args) -> dict:
+    """evaluate.py --protocol policies: the JSON line (module doc); readable lines to stderr."""
+    import logging
+    from pathlib import Path
+
+    from data.doom_env import DoomEnv, world_config
+    from data.sample_world import check_maps
+    from genie.decoding import decoding_settings
+    from genie.evaluation import start_process
+    from genie.motion_estimator import load_motion_estimator
+    from genie.policies import load_policies
+    from genie.world_env import DEFAULT_TOKENIZER, WorldModelEnv
+
+    logger = logging.getLogger("evaluate")
+    device = start_process(args)
+    maps = check_maps_given(args.maps)
+    try:
+        check_maps(maps)
+    except ValueError as e:
+        raise PolicyEvalError(f"--maps: {e}") from None
+    ensure_trained(args)
+    policies = load_policies(args.policies, Path(args.policy_dir))
+    estimator = load_motion_estimator(Path(args.policy_dir) / "motion_estimator.safetensors")
+    env = WorldModelEnv.from_checkpoint(args.checkpoint_dir, None, args.tokenizer_ckpt or DEFAULT_TOKENIZER,
+                                        device=device, copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens,
+                                        temperature=args.temperature, maskgit_steps=args.maskgit_steps)
+    if not env.buttons:
+        raise PolicyEvalError(f"--checkpoint_dir {args.checkpoint_dir}: the policies protocol drives a model with "
+                              f"the sample world's buttons; this one takes {env.model.config.action_names}")
+    raw_dir = Path(args.policy_train_data).parent
+    cfg = world_config(raw_dir) if (raw_dir / "sample_world.json").is_file() else None
+    real_env = DoomEnv(maps=maps, cfg=cfg)
+    try:
+        prompt = args.num_prompt_frames or env.prompt_frames
+        starts = make_starts(real_env, maps, args.starts, prompt, args.seed)
+        result = evaluate_policies(policies, real_env, ModelWorld(env), estimator, starts, args.steps)
+    finally:
+        real_env.close()
+    for line in ranking_lines(result):
+        logger.info(line)
+    return {**result, "maps": maps, "starts_per_map": args.starts, "seed": args.seed,
+            "checkpoint_dir": str(args.checkpoint_dir), "num_prompt_frames": prompt, **decoding_settings(args)}

@@ -1,0 +1,165 @@
+"""Policies (genie/policies.py), the motion estimator's dead reckoning (genie/motion_estimator.py) and the policy
+protocol (genie/policy_eval.py, ./evaluate.py --protocol policies) on hand-made cases."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from genie.motion_estimator import MotionNet, dead_reckon, distance_from_start, step_motion
+from genie.policies import (MACROS, PolicyError, RandomButtons, Shuttle, check_action, load_policies, load_policy,
+                            macro_targets)
+
+
+def test_scripted_policies():
+    shuttle = Shuttle()
+    shuttle.reset(0)
+    assert [shuttle.act(None) for _ in range(6)] == [["MOVE_FORWARD"]] * 2 + [["MOVE_BACKWARD"]] * 2 + \
+        [["MOVE_FORWARD"]] * 2
+    a, b = RandomButtons(), RandomButtons()
+    a.reset(3), b.reset(3)
+    assert [a.act(None) for _ in range(10)] == [b.act(None) for _ in range(10)]
+
+
+def test_policy_files_load_and_bad_ones_are_named(tmp_path):
+    (tmp_path / "mine.py").write_text("class Left:\n    def reset(self, seed): pass\n"
+                                      "    def act(self, frame): return ['TURN_LEFT']\n"
+                                      "class NoAct:\n    def reset(self, seed): pass\n")
+    (tmp_path / "broken.py").write_text("def oops(:\n")
+    policy = load_policy(f"{tmp_path / 'mine.py'}:Left")
+    assert policy.act(np.zeros((64, 64, 3), np.uint8)) == ["TURN_LEFT"]
+    for spec, match in [(f"{tmp_path / 'mine.py'}:NoAct", "has no act"),
+                        (f"{tmp_path / 'broken.py'}:X", "does not load: SyntaxError"),
+                        (f"{tmp_path / 'mine.py'}:Missing", "does not load: AttributeError"),
+                        (f"{tmp_path / 'nowhere.py'}:X", "not found"), ("fly", "unknown policy 'fly'")]:
+        with pytest.raises(PolicyError, match=match):
+            load_policy(spec, tmp_path)
+    with pytest.raises(PolicyError, match="names must differ"):
+        load_policies(["spin", "spin"], tmp_path)
+    with pytest.raises(PolicyError, match=r"unknown button\(s\) \['JUMP'\]"):
+        check_action(["JUMP"], "mine")
+    with pytest.raises(PolicyError, match="list of button names"):
+        check_action("TURN_LEFT", "mine")
+
+
+def test_macro_targets_take_the_action_held_most_of_the_step():
+    forward, left = np.array([1, 0, 0, 0, 0]), np.array([0, 0, 1, 0, 0])
+    buttons = np.stack([forward] * 10 + [left] * 20 + [forward] * 5).astype(np.float32)
+    index, target = macro_targets(buttons, np.zeros(35, dtype=np.int64))
+    assert list(index) == list(range(21))
+    assert MACROS[target[0]] == ("MOVE_FORWARD",) and MACROS[target[5]] == ("TURN_LEFT",)  # 10 of 15 tics left
+    _, split = macro_targets(buttons, np.repeat([0, 1], [20, 15]))  # no step crosses two walks
+    assert len(split) == 6 + 1
+
+
+def test_step_motion_and_dead_reckoning_by_hand():
+    measured = np.zeros((40, 2), np.float32)
+    measured[:15, 0] = 35.0 * 2  # 2 map units a tic
+    measured[15:30, 1] = np.radians(6.0) * 35  # 6 degrees a tic
+    index, steps = step_motion(measured, np.zeros(40, dtype=np.int64))
+    np.testing.assert_allclose(steps[0], [30.0, 0.0], atol=1e-4)
+    np.testing.assert_allclose(steps[15], [0.0, 90.0], atol=1e-3)
+    np.testing.assert_allclose(dead_reckon([[10, 90], [10, 0]])[-1], [10, 10], atol=1e-9)
+    assert distance_from_start([[10, 90], [10, 0]]) == pytest.approx(np.sqrt(200))
+    assert distance_from_start([[10, 0], [-10, 0]]) == pytest.approx(0.0)  # shuttling gets nowhere
+
+
+def test_motion_net_reads_frames_only():
+    net = MotionNet().eval()
+    frames = np.random.default_rng(0).integers(0, 256, size=(4, 64, 64, 3), dtype=np.uint8)
+    assert net.motion(frames).shape == (3, 2)
+
+
+# ------------------------------------------------------------------ the protocol, with the real world
+vizdoom = pytest.importorskip("vizdoom")
+
+
+@pytest.fixture(scope="module")
+def worlds():
+    from data import sample_world as sw
+    from data.doom_env import DoomEnv
+
+    cfg = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)
+    envs = [DoomEnv(maps=["MAP01"], cfg=cfg) for _ in range(2)]
+    yield envs
+    for env in envs:
+        env.close()
+
+
+class IgnoresActions:
+    """A 'world model' whose frames do not depend on the buttons: the recorded walk goes on whatever is pressed."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def begin(self, start):
+        from genie.policy_eval import replay_start
+
+        replay_start(self.env, start.options, len(start.prompt_frames), start.seed)
+        return self.env.frame
+
+    def step(self, buttons):
+        self.env.follow_explorer(15)
+        return self.env.frame
+
+
+def suite():
+    from genie.policies import AlwaysForward, Spin
+
+    return {"spin": Spin(), "forward": AlwaysForward(), "shuttle": Shuttle(), "random": RandomButtons()}
+
+
+def test_the_real_world_as_the_model_reproduces_the_real_frames_ranking(worlds):
+    from genie.policy_eval import RealWorld, evaluate_policies, make_starts
+
+    real, twin = worlds
+    torch.manual_seed(0)
+    estimator = MotionNet().eval()
+    starts = make_starts(real, ["MAP01"], 2, 3, seed=1, latest_frame=300)
+    result = evaluate_policies(suite(), real, RealWorld(twin), estimator, starts, steps=4, progress=False)
+    for row in result["policies"]:
+        assert row["model_return"] == pytest.approx(row["real_frames_return"], abs=1e-6)
+    assert result["spearman"] == pytest.approx(result["real_frames_spearman"])
+    by_name = {r["name"]: r for r in result["policies"]}
+    assert by_name["spin"]["real_return"] < by_name["forward"]["real_return"]  # turning in place: coasting only
+    assert by_name["forward"]["blind_return"] == pytest.approx(4 * 145.83 * 15 / 35, rel=1e-3)  # walls ignored
+
+
+def test_a_model_that_ignores_actions_ranks_no_better_than_chance(worlds):
+    from genie.policy_eval import evaluate_policies, make_starts
+
+    real, twin = worlds
+    starts = make_starts(real, ["MAP01"], 2, 3, seed=2, latest_frame=300)
+    result = evaluate_policies(suite(), real, IgnoresActions(twin), MotionNet().eval(), starts, steps=4,
+                               progress=False)
+    model_returns = {r["model_return"] for r in result["policies"]}
+    assert len(model_returns) == 1  # every policy gets the same imagined walk
+    assert result["spearman"] == 0.0 and result["pairwise_accuracy"] == 0.5
+
+
+def test_evaluate_policies_protocol_end_to_end(tmp_path, capsys):
+    from common.cli import run_main
+    from data import sample_world as sw
+    from evaluate import main
+    from genie.motion_estimator import train_motion_estimator
+    from tests.play_fixtures import tiny_model, tiny_tokenizer
+
+    cfg = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)
+    sw.build_sample_world(tmp_path / "raw", train_maps=("MAP01",), val_maps=("MAP01",), train_episodes=1,
+                          episode_len=60, workers=1, cfg=cfg)
+    train_motion_estimator(tmp_path / "raw" / "train.npz", tmp_path / "policies" / "motion_estimator.safetensors",
+                           steps=2, progress=False)
+    (tmp_path / "mine.py").write_text("class Jump:\n    def reset(self, seed): pass\n"
+                                      "    def act(self, frame): return ['JUMP']\n")
+    args = ["--protocol", "policies", "--checkpoint_dir", str(tiny_model(tmp_path / "model")),
+            "--tokenizer_ckpt", str(tiny_tokenizer(tmp_path / "tokenizer")), "--maps", "MAP01", "--starts", "2",
+            "--steps", "2", "--policy_dir", str(tmp_path / "policies"), "--policy_train_data",
+            str(tmp_path / "raw" / "train.npz"), "--num_threads", "1"]
+    assert run_main("evaluate.py", main, [*args, "--policies", "spin", "forward", "shuttle"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [p["name"] for p in result["policies"]] == ["spin", "forward", "shuttle"]
+    for key in ("spearman", "kendall", "pairwise_accuracy", "regret_at_1", "blind_spearman", "real_frames_spearman"):
+        assert key in result
+    assert all(f"{k}_return_std" in p for p in result["policies"] for k in ("real", "model"))
+    assert run_main("evaluate.py", main, [*args, "--policies", f"{tmp_path / 'mine.py'}:Jump"]) == 1
+    assert "unknown button(s) ['JUMP']" in capsys.readouterr().err
