@@ -1,10 +1,12 @@
 """How far the camera moved between two frames, from the pixels alone: an inverse-dynamics estimate that never reads
 the actions, so a world model's imagined frames and the real ones are measured the same way.
 
-`MotionNet`: two (64, 64, 3) frames one window step (15 tics) apart -> (forward displacement in map units, turn in
-degrees, counter-clockwise positive), trained on the sample world's recorded frames and measured motion
-(`train_motion_estimator`). `distance_from_start` dead-reckons a walk's frames into how far it ended from where it
-began.
+`MotionNet`: two (64, 64, 3) frames one window step (15 tics) apart -> the camera's displacement in the first
+frame's heading (forward and leftward, map units: a walker pressed against a wall slides along it) and its turn
+(degrees, counter-clockwise positive), trained on the sample world's recorded frames and poses
+(`train_motion_estimator`), each pair also played backwards (the motion of a walk reversed: backward steps and the
+other turn, which the explorer rarely does) and a share of still pairs. `distance_from_start` dead-reckons a walk's
+frames into how far it ended from where it began.
 """
 import json
 from pathlib import Path
@@ -16,19 +18,18 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 STRIDE = 15
-HZ = 35.0
 
 
 class MotionNet(nn.Module):
-    """(B, 64, 64, 3) frame pairs (before, after) uint8 -> (B, 2) normalized (forward, turn)."""
+    """(B, 64, 64, 3) frame pairs (before, after) uint8 -> (B, 3) normalized (forward, leftward, turn)."""
 
     def __init__(self):
         super().__init__()
         self.net = nn.Sequential(
             nn.Conv2d(6, 32, 4, stride=2, padding=1), nn.ReLU(), nn.Conv2d(32, 64, 4, stride=2, padding=1), nn.ReLU(),
             nn.Conv2d(64, 64, 4, stride=2, padding=1), nn.ReLU(), nn.Flatten(), nn.Linear(64 * 8 * 8, 128),
-            nn.ReLU(), nn.Linear(128, 2))
-        self.register_buffer("scale", torch.ones(2))  # map units and degrees per normalized unit
+            nn.ReLU(), nn.Linear(128, 3))
+        self.register_buffer("scale", torch.ones(3))  # map units and degrees per normalized unit
 
     def forward(self, before_BHW3: torch.Tensor, after_BHW3: torch.Tensor) -> torch.Tensor:
         x = torch.cat([before_BHW3, after_BHW3], dim=-1).permute(0, 3, 1, 2).float() / 127.5 - 1.0
@@ -36,30 +37,40 @@ class MotionNet(nn.Module):
 
     @torch.no_grad()
     def motion(self, frames_NHW3: np.ndarray) -> np.ndarray:
-        """(N + 1) consecutive frames -> (N, 2) (forward map units, turn degrees) of each step."""
+        """(N + 1) consecutive frames -> (N, 3) (forward, leftward map units, turn degrees) of each step."""
         f = torch.from_numpy(np.ascontiguousarray(frames_NHW3))
         return (self(f[:-1], f[1:]) * self.scale).numpy()
 
 
-def step_motion(measured_N2: np.ndarray, segment_ids: np.ndarray):
-    """(frame indices t, (forward units, turn degrees) from t to t + 15) for every t with a whole step in its walk,
-    from the per-tic measured motion (map units/s along the heading, rad/s)."""
-    n = len(measured_N2)
-    t = np.arange(n - STRIDE)
+def pose_motion(pose_a_N3: np.ndarray, pose_b_N3: np.ndarray) -> np.ndarray:
+    """Poses (x, y, heading degrees) -> (N, 3) the motion from a to b: displacement along a's heading and to its
+    left, and the turn (degrees, wrapped to [-180, 180))."""
+    a, b = pose_a_N3.astype(np.float64), pose_b_N3.astype(np.float64)
+    d = b[:, :2] - a[:, :2]
+    h = np.radians(a[:, 2])
+    forward = d[:, 0] * np.cos(h) + d[:, 1] * np.sin(h)
+    leftward = -d[:, 0] * np.sin(h) + d[:, 1] * np.cos(h)
+    turn = (b[:, 2] - a[:, 2] + 180.0) % 360.0 - 180.0
+    return np.stack([forward, leftward, turn], axis=1).astype(np.float32)
+
+
+def step_pairs(poses_N3: np.ndarray, segment_ids: np.ndarray):
+    """(first frames, second frames, motion (n, 3)) of every pair one step apart inside a walk, each both ways."""
+    t = np.arange(len(poses_N3) - STRIDE)
     t = t[segment_ids[t] == segment_ids[t + STRIDE]]
-    cumulative = np.concatenate([np.zeros((1, 2)), np.cumsum(measured_N2.astype(np.float64) / HZ, axis=0)])
-    total = cumulative[t + STRIDE] - cumulative[t]
-    return t, np.stack([total[:, 0], np.degrees(total[:, 1])], axis=1).astype(np.float32)
+    first, second = np.concatenate([t, t + STRIDE]), np.concatenate([t + STRIDE, t])
+    return first, second, pose_motion(poses_N3[first], poses_N3[second])
 
 
-def train_motion_estimator(train_npz, out_path, steps: int = 2000, seed: int = 0, progress: bool = True) -> MotionNet:
-    """Fit MotionNet to the recorded walks of train_npz (frames, actions_measured_motion, segment_ids); saved at
-    out_path (.safetensors, with a .json of what it was trained on)."""
+def train_motion_estimator(train_npz, out_path, steps: int = 2000, seed: int = 0, still_share: float = 0.1,
+                           progress: bool = True) -> MotionNet:
+    """Fit MotionNet to the recorded walks of train_npz (frames, poses, segment_ids), `still_share` of each batch
+    a frame paired with itself (no motion); saved at out_path (.safetensors, and a .json of how)."""
     from tqdm import tqdm
 
     with np.load(train_npz) as npz:
-        frames, measured, segment_ids = npz["frames"], npz["actions_measured_motion"], npz["segment_ids"]
-    index, target = step_motion(measured, segment_ids)
+        frames, poses, segment_ids = npz["frames"], npz["poses"], npz["segment_ids"]
+    first, second, target = step_pairs(poses, segment_ids)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     net = MotionNet()
@@ -67,10 +78,11 @@ def train_motion_estimator(train_npz, out_path, steps: int = 2000, seed: int = 0
     target_t = torch.from_numpy(target) / net.scale
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
     for _ in tqdm(range(steps), desc="motion estimator", disable=not progress):
-        batch = rng.integers(len(index), size=64)
-        t = index[batch]
-        loss = nn.functional.smooth_l1_loss(net(torch.from_numpy(frames[t]), torch.from_numpy(frames[t + STRIDE])),
-                                            target_t[batch])
+        batch = rng.integers(len(first), size=64)
+        still = rng.random(64) < still_share
+        a, b = first[batch], np.where(still, first[batch], second[batch])
+        goal = torch.where(torch.from_numpy(still)[:, None], 0.0, target_t[batch])
+        loss = nn.functional.smooth_l1_loss(net(torch.from_numpy(frames[a]), torch.from_numpy(frames[b])), goal)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -79,7 +91,8 @@ def train_motion_estimator(train_npz, out_path, steps: int = 2000, seed: int = 0
     tmp = out_path.with_name(f".{out_path.name}.tmp")
     save_file(net.state_dict(), str(tmp))
     tmp.replace(out_path)
-    out_path.with_suffix(".json").write_text(json.dumps({"train_data": str(train_npz), "steps": steps, "seed": seed}))
+    out_path.with_suffix(".json").write_text(json.dumps({"train_data": str(train_npz), "steps": steps, "seed": seed,
+                                                        "still_share": still_share}))
     return net.eval()
 
 
@@ -89,17 +102,22 @@ def load_motion_estimator(path) -> MotionNet:
     return net.eval()
 
 
-def dead_reckon(steps_N2: Sequence) -> np.ndarray:
-    """(N, 2) (forward, turn degrees) per step -> (N + 1, 2) positions from (0, 0), heading 0 at the start; each step
-    moves along the heading it starts with, then turns."""
+def dead_reckon(steps_N3: Sequence) -> np.ndarray:
+    """(N, 3) (forward, leftward, turn degrees) per step, each in the heading the step starts with -> (N + 1, 2)
+    positions from (0, 0), heading 0 at the start. Rows of 2 (forward, turn) have no sideways part."""
+    steps = np.asarray(steps_N3, dtype=np.float64)
+    steps = steps.reshape(-1, steps.shape[-1]) if steps.size else np.zeros((0, 3))
+    if steps.shape[1] == 2:
+        steps = np.stack([steps[:, 0], np.zeros(len(steps)), steps[:, 1]], axis=1)
     position, heading, path = np.zeros(2), 0.0, [np.zeros(2)]
-    for forward, turn in np.asarray(steps_N2, dtype=np.float64).reshape(-1, 2):
-        position = position + forward * np.array([np.cos(heading), np.sin(heading)])
+    for forward, leftward, turn in steps:
+        c, s = np.cos(heading), np.sin(heading)
+        position = position + forward * np.array([c, s]) + leftward * np.array([-s, c])
         heading += np.radians(turn)
         path.append(position)
     return np.stack(path)
 
 
-def distance_from_start(steps_N2: Sequence) -> float:
+def distance_from_start(steps_N3: Sequence) -> float:
     """How far from the start a walk of these step motions ends, in map units."""
-    return float(np.linalg.norm(dead_reckon(steps_N2)[-1]))
+    return float(np.linalg.norm(dead_reckon(steps_N3)[-1]))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from genie.motion_estimator import MotionNet, dead_reckon, distance_from_start, step_motion
+from genie.motion_estimator import MotionNet, dead_reckon, distance_from_start, pose_motion, step_pairs
 from genie.policies import (MACROS, PolicyError, RandomButtons, Shuttle, check_action, load_policies, load_policy,
                             macro_targets)
 
@@ -52,22 +52,27 @@ def test_macro_targets_take_the_action_held_most_of_the_step():
     assert len(split) == 6 + 1
 
 
-def test_step_motion_and_dead_reckoning_by_hand():
-    measured = np.zeros((40, 2), np.float32)
-    measured[:15, 0] = 35.0 * 2  # 2 map units a tic
-    measured[15:30, 1] = np.radians(6.0) * 35  # 6 degrees a tic
-    index, steps = step_motion(measured, np.zeros(40, dtype=np.int64))
-    np.testing.assert_allclose(steps[0], [30.0, 0.0], atol=1e-4)
-    np.testing.assert_allclose(steps[15], [0.0, 90.0], atol=1e-3)
-    np.testing.assert_allclose(dead_reckon([[10, 90], [10, 0]])[-1], [10, 10], atol=1e-9)
-    assert distance_from_start([[10, 90], [10, 0]]) == pytest.approx(np.sqrt(200))
+def test_pose_motion_step_pairs_and_dead_reckoning_by_hand():
+    # heading 90 (north): 30 units north is 30 forward; 10 units west is 10 to the left; then a turn across 360/0
+    a = np.array([[0, 0, 90], [0, 0, 90], [0, 0, 350]], np.float32)
+    b = np.array([[0, 30, 90], [-10, 0, 90], [0, 0, 20]], np.float32)
+    np.testing.assert_allclose(pose_motion(a, b), [[30, 0, 0], [0, 10, 0], [0, 0, 30]], atol=1e-4)
+    poses = np.zeros((40, 3), np.float32)
+    poses[:, 0] = np.arange(40) * 2.0  # 2 units a tic to the east, heading 0
+    first, second, motion = step_pairs(poses, np.repeat([0, 1], [30, 10]))
+    assert len(first) == 2 * 15 and set(second - first) == {15, -15}  # each pair both ways, none across walks
+    np.testing.assert_allclose(motion[first < second][:, 0], 30.0)
+    np.testing.assert_allclose(motion[first > second][:, 0], -30.0)  # played backwards: a backward step
+    np.testing.assert_allclose(dead_reckon([[10, 0, 90], [10, 0, 0]])[-1], [10, 10], atol=1e-9)
+    np.testing.assert_allclose(dead_reckon([[0, 5, 0]])[-1], [0, 5], atol=1e-9)  # sliding to the left
+    assert distance_from_start([[10, 90], [10, 0]]) == pytest.approx(np.sqrt(200))  # (forward, turn) rows
     assert distance_from_start([[10, 0], [-10, 0]]) == pytest.approx(0.0)  # shuttling gets nowhere
 
 
 def test_motion_net_reads_frames_only():
     net = MotionNet().eval()
     frames = np.random.default_rng(0).integers(0, 256, size=(4, 64, 64, 3), dtype=np.uint8)
-    assert net.motion(frames).shape == (3, 2)
+    assert net.motion(frames).shape == (3, 3)
 
 
 # ------------------------------------------------------------------ the protocol, with the real world
