@@ -11,7 +11,7 @@ window.
    context's temporal keys/values once per step (and keeps them while the context grows), against
    genie.reference.next_frame_recomputed, which recomputes the whole window at every MaskGIT step (the published
    way), on the same contexts with the same random state: milliseconds per step and the ratio, while the context
-   grows and once it slides (T-1 frames).
+   grows and once it slides (T-1 frames), and the share of tokens on which the two agree.
 The last line is JSON.
 """
 import argparse
@@ -95,6 +95,7 @@ def model_step_times(env, args) -> dict:
 
     env.reset(seed=args.seed, options={"window": 0})
     times = {"growing": ([], []), "sliding": ([], [])}
+    same = []  # share of the new frame's tokens the two agree on (float rounding can flip a near-tie)
     cache, T = None, env.T
     for i in range(args.model_steps):
         tokens, actions, latent = env._tokens, env._actions.clone(), env._latent
@@ -117,8 +118,7 @@ def model_step_times(env, args) -> dict:
         again = next_frame_recomputed(env.model, tokens, actions, latent, env.maskgit_steps, env.temperature,
                                       torch.Generator().set_state(state))
         t2 = time.perf_counter()
-        if not torch.equal(frame, again):
-            raise AssertionError(f"step {i}: the cached step and the recomputed window disagree")
+        same.append(float((frame == again).float().mean()))
         times[phase][0].append(t1 - t0)
         times[phase][1].append(t2 - t1)
         env.step(int(row) if row.dim() == 0 else row.numpy())  # move the env on (its own cache; not timed)
@@ -127,6 +127,7 @@ def model_step_times(env, args) -> dict:
         if cached:
             out[phase] = {"steps": len(cached), "cached_ms": 1000 * float(np.mean(cached)),
                           "recomputed_ms": 1000 * float(np.mean(full)), "speedup": float(np.mean(full) / np.mean(cached))}
+    out["same_tokens"] = float(np.mean(same))
     return out
 
 
@@ -144,9 +145,13 @@ def main(argv=None) -> int:
     print(f"/step through HTTP: {steps_per_second:.1f} steps/s (decoding + PNG + HTTP, real world beside: "
           f"{'yes' if real else 'no'}, temperature {args.temperature}, {torch.get_num_threads()} threads)")
     model = model_step_times(session.env, args)
-    for phase, t in model.items():
-        print(f"model step, context {phase}: cached {t['cached_ms']:.1f} ms, recomputing the window "
-              f"{t['recomputed_ms']:.1f} ms: {t['speedup']:.2f}x ({t['steps']} steps, the same frames)")
+    for phase in ("growing", "sliding"):
+        if phase in model:
+            t = model[phase]
+            print(f"model step, context {phase}: cached {t['cached_ms']:.1f} ms, recomputing the window "
+                  f"{t['recomputed_ms']:.1f} ms: {t['speedup']:.2f}x ({t['steps']} steps)")
+    print(f"the two agree on {100 * model['same_tokens']:.2f} % of the new frames' tokens (same context, actions and "
+          f"random state; float rounding can flip a near-tie)")
     print(json.dumps({"http_steps_per_second": steps_per_second, "real_world": real,
                       "temperature": args.temperature, "threads": torch.get_num_threads(), "model_step": model}))
     return 0
