@@ -59,7 +59,7 @@ def test_main_job_pipeline_tiny(tmp_path):
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     assert (out / "final_checkpt" / "model.safetensors").exists()
     saved = json.loads((out / "final_checkpt" / "config.json").read_text())
-    assert saved["action_step_mean"] and len(saved["action_mean"]) == 7  # statistics filled in from the data
+    assert saved["action_step_mean"] and len(saved["action_mean"]) == 5  # statistics filled in from the data
     generated = json.loads((out / "generated" / "metadata.json").read_text())
     assert generated["actions_from_data"] and generated["copy_bias"] == 2.0
     assert generated["greedy_tokens"] == "best_neighbour"
