@@ -10,7 +10,7 @@
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
 #   4. evaluate with the challenge metrics, the copy-the-last-frame baselines and the rollout protocol (greedy, and
 #      sampled: whole tokens at temperature 1) -> data/genie_model/*.json
-#   5. print the command that plays the model in a browser (play.py)
+#   5. print the commands that play the model in a browser (play.py) and rank policies inside it
 # Futures are decoded with the pointer's --copy_bias 2 (COPY_BIAS), greedy copies from the single most weighted
 # neighbour (--greedy_tokens best_neighbour, GREEDY_TOKENS).
 # Extra arguments go to train.py (e.g. ./run_sample.sh --max_train_steps 50 for a smoke test). The environment
@@ -110,3 +110,4 @@ echo "metrics: $OUT/metrics.json (LPIPS: $OUT/metrics_lpips.json; copy baselines
 echo "         rollouts: $OUT/metrics_rollout.json, sampled: $OUT/metrics_rollout_sampled.json)"
 [ -z "$SCORED_UNSEEN" ] || echo "unseen maps:$SCORED_UNSEEN"
 echo "play it in a browser: $PY play.py --checkpoint_dir $OUT/final_checkpt --data_dir $VAL"
+echo "rank policies inside it: $PY evaluate.py --protocol policies --checkpoint_dir $OUT/final_checkpt $DECODE_ARGS --temperature 1"
