@@ -96,20 +96,16 @@ def model_step_times(env, args) -> dict:
     env.reset(seed=args.seed, options={"window": 0})
     times = {"growing": ([], []), "sliding": ([], [])}
     same = []  # share of the new frame's tokens the two agree on (float rounding can flip a near-tie)
-    cache, T = None, env.T
+    cache = None
     for i in range(args.model_steps):
-        tokens, actions, latent = env._tokens, env._actions.clone(), env._latent
-        if len(tokens) == T:
-            tokens, actions, latent, cache = tokens[1:], actions[1:], latent[1:], None
-        phase = "growing" if len(tokens) < T - 1 else "sliding"
         if env.buttons:
-            row = env.action_row(np.isin(env.button_names, ACTIONS[i % len(ACTIONS)]).astype(np.int8))
+            action = np.isin(env.button_names, ACTIONS[i % len(ACTIONS)]).astype(np.int8)
         else:  # a latent action id, or a row of zeros for a model of other action streams
-            row = env.action_row(0 if env.latent or not env.model.config.action_dim
-                                 else np.zeros(env.model.config.action_dim))
-        if env.model.config.action_dim:
-            actions[-1] = row
-        latent = torch.cat([latent, row.view(1) if env.latent else torch.tensor([env.model.config.num_latent_actions])])
+            action = 0 if env.latent or not env.model.config.action_dim else np.zeros(env.model.config.action_dim)
+        tokens, actions, latent = env.step_inputs(action)
+        if len(tokens) < len(env._tokens):  # the context slid: nothing cached holds it
+            cache = None
+        phase = "growing" if len(tokens) < env.T - 1 else "sliding"
         state = env._generator.get_state()
         t0 = time.perf_counter()
         frame, cache = next_frame(env.model, tokens, actions, latent, cache, env.maskgit_steps, env.temperature,
@@ -121,7 +117,7 @@ def model_step_times(env, args) -> dict:
         same.append(float((frame == again).float().mean()))
         times[phase][0].append(t1 - t0)
         times[phase][1].append(t2 - t1)
-        env.step(int(row) if row.dim() == 0 else row.numpy())  # move the env on (its own cache; not timed)
+        env.step(action)  # move the env on (its own cache; not timed)
     out = {}
     for phase, (cached, full) in times.items():
         if cached:

@@ -23,10 +23,9 @@ import numpy as np
 from gymnasium import spaces
 
 from common.errors import InputError
-from data.sample_world import (BUTTON_NAMES, HZ, SIDECAR_NAME, VAL_MAPS, WorldConfig, check_maps, engine_action,
-                               gamma_table, make_game, preprocess_frame, start_walk)
+from data.sample_world import (BUTTON_NAMES, HZ, SIDECAR_NAME, STEP_TICS, VAL_MAPS, WorldConfig, check_maps,
+                               engine_action, gamma_table, make_game, preprocess_frame, start_walk)
 
-STEP_TICS = 15  # engine tics per step: one window step of the token datasets (stride 15 at 35 Hz)
 MAX_START_FRAME = 1500  # recorded tics a random start walks before it begins (a recorded walk's length)
 
 
@@ -36,7 +35,7 @@ class EnvInputError(InputError):
 
 def buttons_from_names(names: Sequence[str], button_names: Sequence[str] = BUTTON_NAMES) -> np.ndarray:
     """Held button names (e.g. ["MOVE_FORWARD", "TURN_LEFT"]) -> a 0/1 int8 vector in `button_names` order."""
-    if isinstance(names, (str, bytes)) or not all(isinstance(n, str) for n in names):
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
         raise EnvInputError(f"action must be a list of button names, got {names!r}")
     unknown = [n for n in names if n not in button_names]
     if unknown:

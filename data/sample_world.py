@@ -54,6 +54,7 @@ from tqdm import tqdm
 from common.cli import add_hidden_alias, non_negative_int, positive_int, run_main
 
 HZ = 35  # Doom's fixed tic rate; we record every tic.
+STEP_TICS = 15  # tics between the frames of a token dataset window (its stride): one step of a player or a policy
 BUTTON_NAMES = ("MOVE_FORWARD", "MOVE_BACKWARD", "TURN_LEFT", "TURN_RIGHT", "USE")
 # Maps that render well (light, room to walk); the held-out map is never used for training. The world began with
 # the first eight; the other eight share no map with any unseen set (build.sh --unseen), and twice the maps at the

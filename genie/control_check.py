@@ -73,12 +73,12 @@ def control_check(env, starts: Sequence[int], steps: int, seed: int, real_env=No
     per_start = []
     for i, window in enumerate(tqdm(starts, desc="control check", unit="start", disable=not progress)):
         row = {"window": int(window), "model": {}, "real": {} if real is not None else None}
+        start = recorded_start(raw_npz, env.window_start_frame(int(window))) if real is not None else None
         for name, action in actions.items():
             shift = rollout_shifts(env, action, steps, {"seed": seed + i, "options": {"window": int(window)}})
             model[name].append(shift)
             row["model"][name] = shift
             if real is not None:
-                start = recorded_start(raw_npz, env.window_start_frame(int(window)))
                 shift = rollout_shifts(real_env, action, steps, {"options": start})
                 real[name].append(shift)
                 row["real"][name] = shift

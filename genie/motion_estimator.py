@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-STRIDE = 15
+from data.sample_world import STEP_TICS
 
 
 class MotionNet(nn.Module):
@@ -56,9 +56,9 @@ def pose_motion(pose_a_N3: np.ndarray, pose_b_N3: np.ndarray) -> np.ndarray:
 
 def step_pairs(poses_N3: np.ndarray, segment_ids: np.ndarray):
     """(first frames, second frames, motion (n, 3)) of every pair one step apart inside a walk, each both ways."""
-    t = np.arange(len(poses_N3) - STRIDE)
-    t = t[segment_ids[t] == segment_ids[t + STRIDE]]
-    first, second = np.concatenate([t, t + STRIDE]), np.concatenate([t + STRIDE, t])
+    t = np.arange(len(poses_N3) - STEP_TICS)
+    t = t[segment_ids[t] == segment_ids[t + STEP_TICS]]
+    first, second = np.concatenate([t, t + STEP_TICS]), np.concatenate([t + STEP_TICS, t])
     return first, second, pose_motion(poses_N3[first], poses_N3[second])
 
 

@@ -36,12 +36,12 @@ class PlaySession:
     def __init__(self, env, real_env=None, raw_npz=None):
         self.env, self.real_env, self.raw_npz = env, real_env, raw_npz
         self.lock = threading.Lock()
-        self.frame, self.real_frame, self.info = None, None, {}
+        self.real_frame, self.info = None, {}
         self.step_seconds = []
 
     @property
     def buttons(self) -> Optional[List[str]]:
-        return getattr(self.env, "button_names", None) if self.env.buttons else None
+        return self.env.button_names if self.env.buttons else None
 
     def state(self) -> dict:
         return {"buttons": self.buttons, "latent_actions": self.env.model.config.num_latent_actions,
@@ -56,31 +56,27 @@ class PlaySession:
     def reset(self, seed: Optional[int] = None, window: Optional[int] = None) -> np.ndarray:
         with self.lock:
             options = {} if window is None else {"window": window}
-            self.frame, self.info = self.env.reset(seed=seed, options=options)
+            frame, self.info = self.env.reset(seed=seed, options=options)
             self.step_seconds = []
             if self.real_env is not None and self.info["window"] is not None:
                 from data.doom_env import recorded_start
 
                 start = recorded_start(self.raw_npz, self.env.window_start_frame(self.info["window"]))
                 self.real_frame, _ = self.real_env.reset(options=start)
-            return self.frame
+            return frame
 
     def step(self, action: Union[List[str], int]) -> np.ndarray:
         with self.lock:
             t0 = time.perf_counter()
-            if self.env.buttons:
+            if self.env.buttons:  # else a latent action id, or a row of a model's other real action streams
                 from data.doom_env import buttons_from_names
 
-                if not isinstance(action, list):
-                    raise InputError(f"action must be a list of held buttons {self.buttons}, got {action!r}")
-                model_action = real_action = buttons_from_names(action, self.env.button_names)
-            else:  # a latent action id, or a row of a model's other real action streams
-                model_action = real_action = action
-            self.frame, _, _, _, self.info = self.env.step(model_action)
+                action = buttons_from_names(action, self.env.button_names)
+            frame, _, _, _, self.info = self.env.step(action)
             if self.real_env is not None:
-                self.real_frame, *_ = self.real_env.step(real_action)
+                self.real_frame, *_ = self.real_env.step(action)
             self.step_seconds.append(time.perf_counter() - t0)
-            return self.frame
+            return frame
 
 
 def build_app(session: PlaySession):

@@ -22,9 +22,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from common.errors import InputError
-from data.sample_world import BUTTON_NAMES
-
-WINDOW_STRIDE = 15
+from data.sample_world import BUTTON_NAMES, STEP_TICS
 # the macro actions a cloned policy chooses between (held buttons), the explorer's own plus standing still
 MACROS = ((), ("MOVE_FORWARD",), ("MOVE_FORWARD", "TURN_LEFT"), ("MOVE_FORWARD", "TURN_RIGHT"), ("TURN_LEFT",),
           ("TURN_RIGHT",), ("MOVE_BACKWARD",), ("MOVE_FORWARD", "USE"))
@@ -37,16 +35,15 @@ class PolicyError(InputError):
     """A policy that does not load, or an action that names no button."""
 
 
-def check_action(action, name: str) -> List[str]:
-    """A policy's answer -> the list of held buttons; clear error for anything else."""
-    if isinstance(action, (str, bytes)) or not isinstance(action, (list, tuple)) or \
-            not all(isinstance(b, str) for b in action):
-        raise PolicyError(f"policy {name}: act() must return a list of button names, got {action!r}")
-    unknown = [b for b in action if b not in BUTTON_NAMES]
-    if unknown:
-        raise PolicyError(f"policy {name}: act() returned unknown button(s) {unknown}; the buttons are "
-                          f"{list(BUTTON_NAMES)}")
-    return list(action)
+def check_action(action, name: str) -> np.ndarray:
+    """A policy's answer -> the held buttons as a 0/1 vector in BUTTON_NAMES order; clear error for anything
+    else."""
+    from data.doom_env import EnvInputError, buttons_from_names
+
+    try:
+        return buttons_from_names(action)
+    except EnvInputError as e:
+        raise PolicyError(f"policy {name}: act() returned no buttons it could hold: {e}") from None
 
 
 class Spin:
@@ -128,11 +125,11 @@ def macro_targets(buttons_N5: np.ndarray, segment_ids: np.ndarray) -> tuple:
     """(frame indices, macro ids): for each frame with a whole window step after it in its walk, the macro action
     held for most of the next 15 tics."""
     n = len(buttons_N5)
-    starts = np.arange(n - WINDOW_STRIDE + 1)
-    starts = starts[segment_ids[starts] == segment_ids[starts + WINDOW_STRIDE - 1]]
+    starts = np.arange(n - STEP_TICS + 1)
+    starts = starts[segment_ids[starts] == segment_ids[starts + STEP_TICS - 1]]
     codes = {tuple(int(b in m) for b in BUTTON_NAMES): i for i, m in enumerate(MACROS)}
     per_tic = np.array([codes.get(tuple(int(v) for v in row), 0) for row in buttons_N5.astype(np.int64)])
-    windows = per_tic[starts[:, None] + np.arange(WINDOW_STRIDE)]
+    windows = per_tic[starts[:, None] + np.arange(STEP_TICS)]
     counts = np.stack([(windows == k).sum(1) for k in range(len(MACROS))], axis=1)
     return starts, counts.argmax(1)
 

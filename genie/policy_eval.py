@@ -20,18 +20,18 @@ numbers).
 """
 import time
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Sequence
 
 import numpy as np
 from tqdm import tqdm
 
 from common.errors import InputError
-from data.sample_world import BUTTON_NAMES, HZ
+from data import sample_world
+from data.sample_world import BUTTON_NAMES, HZ, STEP_TICS, driving_command
 from genie.motion_estimator import distance_from_start
 from genie.policies import check_action
 from genie.ranking import kendall, pairwise_accuracy, regret_at_1, spearman
 
-STRIDE = 15  # tics per step
 MAX_START_TRIES = 20
 
 
@@ -74,7 +74,7 @@ def replay_start(real_env, options: dict, prompt_frames: int, seed: int) -> Star
     frame, _ = real_env.reset(options=options)
     frames, rows = [frame], []
     for _ in range(prompt_frames - 1):
-        rows.append(real_env.follow_explorer(STRIDE).mean(axis=0))
+        rows.append(real_env.follow_explorer(STEP_TICS).mean(axis=0))
         frames.append(real_env.frame)
     return Start(options, np.stack(frames), np.asarray(rows, dtype=np.float32).reshape(-1, len(BUTTON_NAMES)), seed)
 
@@ -111,13 +111,11 @@ class ModelWorld:
 
 def drive(world, policy, name: str, start: Start, steps: int):
     """Run `policy` for `steps` steps in `world` from `start`: (frames (steps + 1, 64, 64, 3), buttons (steps, 5))."""
-    from data.doom_env import buttons_from_names
-
     frame = world.begin(start)
     policy.reset(start.seed)
     frames, held = [frame], []
     for _ in range(steps):
-        buttons = buttons_from_names(check_action(policy.act(frame), name))
+        buttons = check_action(policy.act(frame), name)
         frame = world.step(buttons)
         frames.append(frame)
         held.append(buttons)
@@ -126,10 +124,8 @@ def drive(world, policy, name: str, start: Start, steps: int):
 
 def blind_steps(held_K5: np.ndarray, cfg) -> np.ndarray:
     """(K, 2) per-step (forward map units, turn degrees) that the held buttons command, walls ignored."""
-    held = held_K5.astype(np.float64)
-    forward = (held[:, 0] - held[:, 1]) * cfg.top_speed * STRIDE / HZ
-    turn = (held[:, 2] - held[:, 3]) * cfg.turn_speed * STRIDE
-    return np.stack([forward, turn], axis=1)
+    linear, angular = (driving_command(held_K5, cfg).astype(np.float64) * STEP_TICS / HZ).T
+    return np.stack([linear, np.degrees(angular)], axis=1)
 
 
 def evaluate_policies(policies: Dict[str, object], real_env, model_world, estimator, starts: List[Start],
@@ -196,12 +192,6 @@ def ranking_lines(result: dict) -> List[str]:
     return lines
 
 
-def check_maps_given(maps: Optional[Sequence[str]]) -> List[str]:
-    if not maps:
-        raise PolicyEvalError("--maps: name at least one map")
-    return list(maps)
-
-
 # ------------------------------------------------------------------ evaluate.py --protocol policies
 POLICIES_HELP = ("; policies: rank --policies by how far each gets from its start in --steps steps, inside the world "
                  "model and in the real sample world, from the same starts (genie/policy_eval.py)")
@@ -216,7 +206,7 @@ def add_policy_args(parser) -> None:
     group.add_argument("--policies", nargs="+", default=list(BUILTIN_POLICIES),
                        help="Built-in policy names or path/to/file.py:ClassName (default: the built-in suite, "
                             "%(default)s).")
-    group.add_argument("--maps", nargs="+", default=list(DEFAULT_MAPS),
+    group.add_argument("--maps", nargs="+", type=sample_world.map_name, default=list(DEFAULT_MAPS),
                        help="Maps of the starts (default: %(default)s, never trained on).")
     group.add_argument("--starts", type=int, default=4, help="Starts per map (default: %(default)s).")
     group.add_argument("--steps", type=int, default=16,
@@ -262,24 +252,19 @@ def run_policies(args) -> dict:
     from pathlib import Path
 
     from data.doom_env import DoomEnv, world_config
-    from data.sample_world import check_maps
     from genie.decoding import decoding_settings
     from genie.evaluation import start_process
     from genie.motion_estimator import load_motion_estimator
     from genie.policies import load_policies
-    from genie.world_env import DEFAULT_TOKENIZER, WorldModelEnv
+    from genie.world_env import WorldModelEnv
 
     logger = logging.getLogger("evaluate")
     device = start_process(args)
-    maps = check_maps_given(args.maps)
-    try:
-        check_maps(maps)
-    except ValueError as e:
-        raise PolicyEvalError(f"--maps: {e}") from None
+    maps = list(args.maps)
     ensure_trained(args)
     policies = load_policies(args.policies, Path(args.policy_dir))
     estimator = load_motion_estimator(Path(args.policy_dir) / "motion_estimator.safetensors")
-    env = WorldModelEnv.from_checkpoint(args.checkpoint_dir, None, args.tokenizer_ckpt or DEFAULT_TOKENIZER,
+    env = WorldModelEnv.from_checkpoint(args.checkpoint_dir, None, args.tokenizer_ckpt,
                                         device=device, copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens,
                                         temperature=args.temperature, maskgit_steps=args.maskgit_steps)
     if not env.buttons:

@@ -29,17 +29,13 @@ from gymnasium import spaces
 
 from common.errors import InputError
 from data import RawTokenDataset
-from data.sample_world import BUTTON_NAMES
+from data.sample_world import BUTTON_NAMES, HZ, STEP_TICS
 from genie.action_data import LATENT_ACTION_NAME, prepare_action_streams
 from genie.checkpoint import resolve_checkpoint_dir
 from genie.config import check_dataset_matches
 from genie.decoding import DEFAULT_MASKGIT_STEPS
 from genie.inference import next_frame
 from genie.model import STMaskGIT
-
-WINDOW_STRIDE = 15  # frames between a window's frames in the token datasets (one window step)
-DEFAULT_TOKENIZER = "magvit2/pretrained/sample_world_64"
-
 
 class WorldEnvError(InputError):
     """A start, an action or a setting the world model's environment cannot take."""
@@ -54,7 +50,7 @@ class WorldModelEnv(gym.Env):
     copy_bias are set on the model). seed: of the sampler, when reset() gets none.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 35 / WINDOW_STRIDE}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": HZ / STEP_TICS}
 
     def __init__(self, model: STMaskGIT, tokenizer, starts: Optional[RawTokenDataset] = None, *,
                  prompt_frames: Optional[int] = None, temperature: float = 1.0,
@@ -94,8 +90,7 @@ class WorldModelEnv(gym.Env):
             self.action_space = spaces.Box(-np.inf, np.inf, (config.action_dim,), dtype=np.float32)
         else:
             self.action_space = spaces.Discrete(1)  # a model without actions: one action, "go on"
-        h = config.H
-        frame = self._decode(torch.zeros(h, config.W, dtype=torch.long, device=self.device))
+        frame = self._decode(torch.zeros(config.H, config.W, dtype=torch.long, device=self.device))
         self.observation_space = spaces.Box(0, 255, frame.shape, dtype=np.uint8)
         self._generator = torch.Generator(device=self.device)
         self._tokens, self._frame, self._cache = None, None, None
@@ -106,7 +101,8 @@ class WorldModelEnv(gym.Env):
         """Load a dynamics checkpoint (a directory or a hub id), the token dataset of its starts (data_dir, or
         None) and the tokenizer (tokenizer_ckpt, else the one the dataset's metadata names, else the sample world's).
         copy_bias / greedy_tokens: the decoding of a model with a copy head (the main command's defaults)."""
-        from magvit2.model import VQModel  # the tokenizer loads only where frames are decoded
+        from magvit2.build_sample import SHIPPED_TOKENIZER  # the tokenizer loads only where frames are decoded
+        from magvit2.model import VQModel
 
         model = STMaskGIT.from_pretrained(resolve_checkpoint_dir(checkpoint_dir)).to(device)
         if model.copy_head is not None:
@@ -114,11 +110,11 @@ class WorldModelEnv(gym.Env):
             model.set_greedy_tokens(greedy_tokens)
         starts = None
         if data_dir is not None:
-            starts = RawTokenDataset(data_dir, window_size=model.config.T, stride=WINDOW_STRIDE, filter_overlaps=True)
+            starts = RawTokenDataset(data_dir, window_size=model.config.T, stride=STEP_TICS, filter_overlaps=True)
             if len(starts) == 0:
-                raise WorldEnvError(f"{data_dir}: no window of {model.config.T} frames at stride {WINDOW_STRIDE}")
+                raise WorldEnvError(f"{data_dir}: no window of {model.config.T} frames at stride {STEP_TICS}")
         tokenizer_ckpt = tokenizer_ckpt or (starts.metadata.get("tokenizer_ckpt") if starts else None) \
-            or DEFAULT_TOKENIZER
+            or SHIPPED_TOKENIZER
         tokenizer = VQModel.from_checkpoint(tokenizer_ckpt, map_location=device)
         return cls(model, tokenizer, starts, **kwargs)
 
@@ -183,7 +179,7 @@ class WorldModelEnv(gym.Env):
     def window_start_frame(self, window: int, prompt_frames: Optional[int] = None) -> int:
         """Dataset frame index of the last given frame of a start from window `window` (where the recorded walk
         goes on)."""
-        return int(self.starts.valid_start_inds[window]) + ((prompt_frames or self.prompt_frames) - 1) * WINDOW_STRIDE
+        return int(self.starts.valid_start_inds[window]) + ((prompt_frames or self.prompt_frames) - 1) * STEP_TICS
 
     def _check_rows(self, rows, n: int) -> np.ndarray:
         dim = self.model.config.action_dim
@@ -231,37 +227,32 @@ class WorldModelEnv(gym.Env):
             raise WorldEnvError(f"action must be {config.action_dim} {what}, got {action!r}")
         return torch.from_numpy(a)
 
-    def step(self, action):
+    def step_inputs(self, action):
+        """What a step with `action` samples the next frame from: (the context's tokens (n, H, W), its action rows
+        (n, D) with the last one the action's, latent ids of the n + 1 frames with the new frame's the action's).
+        Once T frames are known the oldest is dropped: the context keeps the last T-1."""
         if self._tokens is None:
             raise WorldEnvError("call reset() before step()")
         row = self.action_row(action)
-        if len(self._tokens) == self.T:
-            self._slide()
-        n = len(self._tokens)
-        if self.latent:
-            latent = torch.cat([self._latent, row.view(1)])
-            actions = None
-        else:
-            actions = self._actions.clone()
-            if self.model.config.action_dim:
-                actions[n - 1] = row
-            latent = torch.cat([self._latent, torch.tensor([self.model.config.num_latent_actions])])
-        new_frame, self._cache = next_frame(self.model, self._tokens, actions, latent, self._cache,
-                                            self.maskgit_steps, self.temperature, self._generator)
-        if self.latent:
-            self._latent = latent
-        else:
-            self._actions = torch.cat([actions, torch.full_like(actions[:1], float("nan"))])
-            self._latent = latent
-        self._tokens = torch.cat([self._tokens, new_frame[None]])
+        tokens, actions, latent = self._tokens, self._actions.clone(), self._latent
+        if len(tokens) == self.T:
+            tokens, actions, latent = tokens[1:], actions[1:], latent[1:]
+        if self.model.config.action_dim:
+            actions[-1] = row
+        new_latent = row.view(1) if self.latent else torch.tensor([self.model.config.num_latent_actions])
+        return tokens, actions, torch.cat([latent, new_latent])
+
+    def step(self, action):
+        tokens, actions, latent = self.step_inputs(action)
+        # a cache that does not hold exactly this context (after a slide: none is kept) is recomputed
+        new_frame, self._cache = next_frame(self.model, tokens, actions, latent, self._cache, self.maskgit_steps,
+                                            self.temperature, self._generator)
+        self._tokens = torch.cat([tokens, new_frame[None]])
+        self._actions = torch.cat([actions, torch.full_like(actions[:1], float("nan"))])
+        self._latent = latent
         self._steps += 1
         self._frame = self._decode(new_frame)
         return self._frame, 0.0, False, False, self._info()
-
-    def _slide(self) -> None:
-        """Drop the oldest frame (and its action rows): the context keeps the last T-1 frames."""
-        self._tokens, self._actions, self._latent = self._tokens[1:], self._actions[1:], self._latent[1:]
-        self._cache = None
 
     def _decode(self, tokens_hw: torch.Tensor) -> np.ndarray:
         with torch.no_grad():

@@ -90,11 +90,8 @@ def test_cached_sliding_step_equals_recomputing_the_window(env, temperature):
     rng = np.random.default_rng(0)
     for _ in range(2 * T + 3):
         action = (rng.random(5) < 0.4).astype(np.int8)
-        tokens, actions, latent = env._tokens, env._actions.clone(), env._latent
-        if len(tokens) == T:  # what the step does first: the context keeps the last T-1 frames
-            tokens, actions, latent = tokens[1:], actions[1:], latent[1:]
-        actions[-1] = torch.from_numpy(action).float()
-        latent = torch.cat([latent, torch.tensor([0])])
+        tokens, actions, latent = env.step_inputs(action)  # the context keeps the last T-1 frames
+        np.testing.assert_array_equal(actions[-1].numpy(), action)
         generator = torch.Generator().set_state(env._generator.get_state())
         expected = next_frame_recomputed(env.model, tokens, actions, latent, env.maskgit_steps, temperature,
                                          generator)
