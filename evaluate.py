@@ -24,7 +24,7 @@ with its _mean; rollout_far_psnr, hold_far_psnr (the last horizon); the sampler 
 copy_bias, greedy_tokens, stall_ratio); gen_time (s per generated frame); num_examples.
 
 Diagnostics that score other futures the same way (the copy ceiling, per-window scores and their breakdown by
-motion, a model without its actions) are `python -m genie.diagnostics`.
+motion, a model without its actions) are `python -m evaluation.diagnostics`.
 """
 import argparse
 import json
@@ -37,12 +37,12 @@ import torch
 
 from common.cli import run_main, setup_logging
 from data import RawTokenDataset
-from genie.action_data import LATENT_ACTION_NAME, latent_action_sidecar
-from genie.evaluation import (EvaluationError, add_protocol_args, add_save_outputs_arg, add_window_args,  # noqa: F401
+from training.action_streams import LATENT_ACTION_NAME, latent_action_sidecar
+from evaluation.protocols import (EvaluationError, add_protocol_args, add_save_outputs_arg, add_window_args,  # noqa: F401
                               check_protocol_args, check_window_args, delta_psnr, frame_scorer, load_model,
                               model_windows, rollout_evaluate, start_process, teacher_forced_run)
 from genie.model import STMaskGIT
-from genie.policy_eval import POLICIES_HELP, add_policy_args, check_policy_args, run_policies
+from evaluation.policy_ranking import POLICIES_HELP, add_policy_args, check_policy_args, run_policies
 from lam.data import valid_targets
 from lam.probe import action_probe, transition_labels
 

@@ -60,7 +60,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> int:
     import uvicorn
 
-    from genie.play_server import build_app, make_session
+    from play_server.app import build_app, make_session
 
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")

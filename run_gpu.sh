@@ -22,7 +22,7 @@
 # The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO
 # as in run_sample.sh)
 # Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
-# (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to magvit2.build_sample (e.g. --turn_speed).
+# (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to sample_world.build (e.g. --turn_speed).
 # SKIP_BUILD=1 trains on GPU_DIR as it is (its train/ and val/ built on another machine and copied, e.g. to a GPU
 # box without ViZDoom; checked against their MANIFEST.json first: 34 MB as xz-compressed tokens at the default size).
 # PY picks the Python (default venv/bin/python, from ./build.sh --no-data). Without a CUDA GPU it stops, unless
@@ -32,7 +32,7 @@ case "${1:-}" in -h|--help) sed -n '2,/^[^#]/s/^# \{0,1\}//p' "$0"; exit 0 ;; es
 cd "$(dirname "$0")"
 export PY=${PY:-venv/bin/python}
 GPU_DIR=${GPU_DIR:-data/sample_gpu}
-# the default world's training maps (data.sample_world.TRAIN_MAPS), spelled out so that TRAIN_MAPS can replace them
+# the default world's training maps (sample_world.render.TRAIN_MAPS), spelled out so that TRAIN_MAPS can replace them
 GPU_TRAIN_MAPS="MAP01 MAP04 MAP05 MAP09 MAP10 MAP12 MAP13 MAP15 MAP08 MAP11 MAP14 MAP16 MAP17 MAP19 MAP20 MAP21"
 if [ "${ALLOW_CPU:-0}" != 1 ] && ! "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)"; then
   echo "run_gpu.sh: no CUDA GPU visible to $PY; this recipe is sized for one (./run_sample.sh is the CPU job)." >&2
@@ -45,7 +45,7 @@ if [ "${SKIP_BUILD:-0}" = 1 ]; then
   for split in train val; do
     if [ ! -f "$GPU_DIR/$split/metadata.json" ]; then
       echo "run_gpu.sh: SKIP_BUILD=1, but $GPU_DIR/$split/metadata.json is missing: build the world first (./run_gpu.sh" >&2
-      echo "  without SKIP_BUILD, or python -m magvit2.build_sample --output_dir DIR --train_episodes 8" >&2
+      echo "  without SKIP_BUILD, or python -m sample_world.build --output_dir DIR --train_episodes 8" >&2
       echo "  --train_maps ... on a machine with ViZDoom) and copy its train/ and val/ to $GPU_DIR" >&2
       exit 1
     fi
@@ -58,7 +58,7 @@ if [ "${SKIP_BUILD:-0}" = 1 ]; then
 else
   CPUS=$(nproc 2>/dev/null || echo 2)
   # shellcheck disable=SC2086  # TRAIN_MAPS and BUILD_ARGS are lists
-  "$PY" -m magvit2.build_sample --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-8}" \
+  "$PY" -m sample_world.build --output_dir "$GPU_DIR" --train_episodes "${EPISODES:-8}" \
     --train_maps ${TRAIN_MAPS:-$GPU_TRAIN_MAPS} --workers "${WORKERS:-$(( CPUS < 8 ? CPUS : 8 ))}" ${BUILD_ARGS:-}
 fi
 

@@ -19,7 +19,7 @@
 # GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=), EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS
 # (extra evaluate.py flags of the three evaluations), SAMPLED_ROLLOUT_ARGS (the sampler of the second rollout
 # evaluation), COPY_BIAS, GREEDY_TOKENS and WEIGHT_DECAY (train.py's, default 0.4) change the defaults below;
-# SKIP_BASELINES=1 skips genie.baselines (the data's copy and lookup baselines, the same for every model: slow on a
+# SKIP_BASELINES=1 skips evaluation.baselines (the data's copy and lookup baselines, the same for every model: slow on a
 # large world, and known after one run).
 # STALL_RATIO (off unless set) turns on the stall rule for the futures (--stall_ratio: a future whose frame changes
 # at most that fraction of what the prompt's frames change holds that frame; docs/experiments.md measures 0.66 for
@@ -53,7 +53,7 @@ DECODE_ARGS+="${STALL_RATIO:+ --stall_ratio $STALL_RATIO}"
   --num_warmup_steps 120 --max_train_steps 1600 --weight_decay "${WEIGHT_DECAY:-0.4}" --eval_every_n_steps 800 --max_eval_steps 16 \
   --checkpointing_steps 800 --resume_from_checkpoint latest "$@"
 
-"$PY" genie/generate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --output_dir "$OUT/generated" \
+"$PY" generate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" --output_dir "$OUT/generated" \
   --num_prompt_frames 8 --num_examples "${NUM_EXAMPLES:-4}" --example_stride "${EXAMPLE_STRIDE:-2500}" --maskgit_steps 2 --temperature 0 \
   $DECODE_ARGS ${GENERATE_ARGS---actions_from_data}
 "$PY" visualize.py --token_dir "$OUT/generated" --output_dir "$OUT" --fps 4
@@ -76,7 +76,7 @@ SAMPLED=${SAMPLED_ROLLOUT_ARGS---temperature 1}
 evaluate_tf "$VAL" | tee "$OUT/eval.log"
 "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$VAL" ${LPIPS_EVAL_ARGS:---max_examples 60} \
   | tee "$OUT/eval_lpips.log"
-[ -n "${SKIP_BASELINES:-}" ] || "$PY" -m genie.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" | tee "$OUT/baselines.log"
+[ -n "${SKIP_BASELINES:-}" ] || "$PY" -m evaluation.baselines --train_data_dir "$TRAIN" --val_data_dir "$VAL" | tee "$OUT/baselines.log"
 # The 1X sampling challenge's form: 8 prompt frames, the other 8 generated free-running, PSNR / SSIM / LPIPS per
 # horizon against holding the last prompt frame.
 evaluate_rollout "$VAL" | tee "$OUT/eval_rollout.log"

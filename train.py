@@ -53,10 +53,10 @@ from common.ema import WeightAverage
 from common.errors import InputError, TrainingError, WriteError
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset
-from genie.action_data import action_statistics, latent_action_sidecar, prepare_action_streams, stream_dims
+from training.action_streams import action_statistics, latent_action_sidecar, prepare_action_streams, stream_dims
 from genie.checkpoint import load_state_dict_checked
 from genie.config import ConfigError, GenieConfig, TrainingRecipe, check_dataset_matches
-from genie.masking import get_maskgit_collator
+from training.masking import get_maskgit_collator
 from genie.model import MaskGITBatch
 from genie.model import STMaskGIT
 from common.files import remove_stale_temp_dirs

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from common.allocator import OPT_OUT_ENV
 from common.cli import positive_int, run_main
-from magvit2.build_sample import SHIPPED_TOKENIZER, resolve_tokenizer
+from sample_world.build import SHIPPED_TOKENIZER, resolve_tokenizer
 
 BENCH_TRAIN = Path(__file__).with_name("bench_train.py")
 TRAIN_LINE = re.compile(r"([0-9.]+) s/step .*?([0-9,]+) minor page faults per step")

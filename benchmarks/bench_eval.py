@@ -27,7 +27,7 @@ from common.cli import (add_device_arg, add_num_threads_arg, apply_cpu_settings,
 from data import RawTokenDataset, write_token_dataset
 from genie import GenieConfig, STMaskGIT
 from genie.metrics import factored_cross_entropy
-from genie.inference import generate, teacher_forced
+from genie.inference import generate_frames, teacher_forced
 from genie.reference import generate_uncached, teacher_forced_uncached
 
 CONFIG_PATH = Path(genie.__file__).parent / "configs" / "magvit_n8_h8_d256.json"

@@ -65,7 +65,7 @@ def http_steps_per_second(session, args) -> float:
     """Serve the session with uvicorn in a thread and time /step requests from a client in this thread."""
     import uvicorn
 
-    from genie.play_server import build_app
+    from play_server.app import build_app
 
     port = free_port()
     server = uvicorn.Server(uvicorn.Config(build_app(session), host="127.0.0.1", port=port, log_level="warning"))
@@ -130,7 +130,7 @@ def model_step_times(env, args) -> dict:
 def main(argv=None) -> int:
     args = parse_args(argv)
     apply_cpu_settings(args.num_threads)
-    from genie.play_server import make_session
+    from play_server.app import make_session
 
     session = make_session(argparse.Namespace(
         checkpoint_dir=args.checkpoint_dir, data_dir=args.data_dir, tokenizer_ckpt=None, device="cpu",

@@ -31,8 +31,8 @@ import torch
 from common.cli import (NO_NATIVE_BF16, add_device_arg, add_num_threads_arg, apply_cpu_settings, cpu_has_native_bf16,
                         non_negative_int, positive_int, resolve_device, run_main)
 from common.muon import build_optimizer
-from genie.action_data import LATENT_ACTION_NAME
-from genie.masking import get_maskgit_collator
+from training.action_streams import LATENT_ACTION_NAME
+from training.masking import get_maskgit_collator
 from genie.transformer import set_cpu_bf16_math
 from genie.config import GenieConfig, TrainingRecipe
 from genie.model import STMaskGIT

@@ -15,7 +15,7 @@ Teacher-forced evaluation of target t knows
 rows < t (the real action of frame t-1, not the latent action derived from frame t itself); generation from a
 P-frame prompt knows rows < P unless the caller plays actions (control).
 
-Reading these streams from a token dataset is genie/action_data.py's job; this file is only the network part.
+Reading these streams from a token dataset is training/action_streams.py's job; this file is only the network part.
 """
 from typing import Optional, Union
 

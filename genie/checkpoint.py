@@ -1,5 +1,7 @@
-"""GENIE checkpoint directories: config.json + model.safetensors (docs/formats.md §3), written atomically, read
+"""GENIE checkpoint directories: config.json + model.safetensors (docs/formats.md §3), plus decoding.json (how the
+model is sampled) and, for a model trained here, recipe.json (the run that trained it); written atomically, read
 with clear errors, from a local directory or the Hugging Face hub."""
+import json
 import os
 import shutil
 import tempfile
@@ -13,14 +15,18 @@ from common.config import load_json
 from common.errors import CheckpointError
 from common.integrity import update_manifest, verify_manifest
 from genie.config import GenieConfig, TrainingRecipe, save_config
+from genie.decoding import DECODING_NAME, save_decoding
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
+RECIPE_NAME = "recipe.json"
 
 
-def save_model(model, save_directory: Union[str, Path], recipe: Optional[TrainingRecipe] = None) -> None:
+def save_model(model, save_directory: Union[str, Path], recipe: Optional[TrainingRecipe] = None,
+               run_recipe: Optional[dict] = None) -> None:
     """Write config.json (+ the recipe's fields, as the published file has its training knobs),
-    model.safetensors and their digests (MANIFEST.json, common/integrity.py).
+    model.safetensors, decoding.json (`model.decoding`), recipe.json (`run_recipe`, the resolved recipe of the run
+    that trained it, when given) and their digests (MANIFEST.json, common/integrity.py).
 
     A new directory is written under a temporary name and renamed; in an existing directory each file is replaced
     atomically and other files are kept.
@@ -32,13 +38,18 @@ def save_model(model, save_directory: Union[str, Path], recipe: Optional[Trainin
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:
         save_config(tmp / CONFIG_NAME, model.config, recipe)
+        save_decoding(tmp / DECODING_NAME, model.decoding)
+        names = [CONFIG_NAME, WEIGHTS_NAME, DECODING_NAME]
+        if run_recipe is not None:
+            (tmp / RECIPE_NAME).write_text(json.dumps(run_recipe, indent=2, sort_keys=True) + "\n")
+            names.append(RECIPE_NAME)
         state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
         safetensors.torch.save_file(state, str(tmp / WEIGHTS_NAME), metadata={"format": "pt"})
-        update_manifest(tmp, (CONFIG_NAME, WEIGHTS_NAME))
+        update_manifest(tmp, names)
         if target.exists():
-            for name in (WEIGHTS_NAME, CONFIG_NAME):
+            for name in names[2:] + [WEIGHTS_NAME, CONFIG_NAME]:  # config.json last, as before
                 os.replace(tmp / name, target / name)
-            update_manifest(target, (CONFIG_NAME, WEIGHTS_NAME))
+            update_manifest(target, names)
         else:
             os.replace(tmp, target)
     finally:
@@ -102,6 +113,7 @@ def resolve_checkpoint_dir(name_or_path: Union[str, Path], revision: Optional[st
         files = [hf_hub_download(str(name_or_path), name, revision=revision, cache_dir=cache_dir,
                                  force_download=force_download, local_files_only=local_files_only, token=token)
                  for name in (CONFIG_NAME, WEIGHTS_NAME)]
+        _download_decoding(str(name_or_path), revision, cache_dir, force_download, local_files_only, token)
     except Exception as e:  # offline, unknown repo, no access, invalid id: all end the same way for the user
         raise FileNotFoundError(
             f"checkpoint {name_or_path!r} is not a local directory and could not be fetched from the Hugging Face "
@@ -109,3 +121,14 @@ def resolve_checkpoint_dir(name_or_path: Union[str, Path], revision: Optional[st
             f"download it with `huggingface-cli download {name_or_path} --local-dir <dir>` and pass that "
             f"directory instead.") from None
     return Path(files[0]).parent
+
+
+def _download_decoding(repo_id: str, revision, cache_dir, force_download: bool, local_files_only: bool, token) -> None:
+    """Fetch a hub checkpoint's decoding.json beside its weights when it has one (the published ones do not)."""
+    from huggingface_hub.utils import EntryNotFoundError
+
+    try:
+        hf_hub_download(repo_id, DECODING_NAME, revision=revision, cache_dir=cache_dir, force_download=force_download,
+                        local_files_only=local_files_only, token=token)
+    except EntryNotFoundError:
+        pass

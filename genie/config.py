@@ -163,9 +163,9 @@ class GenieConfig:
 
 @dataclass
 class TrainingRecipe:
-    """How the dynamics model is trained (genie/masking.py, the loss in genie/model.py). Defaults are the published
+    """How the dynamics model is trained (training/masking.py, the loss in genie/model.py). Defaults are the published
     recipe; nothing here changes the network or its inference."""
-    # which tokens a training example hides (genie/masking.py):
+    # which tokens a training example hides (training/masking.py):
     # "published": the published MaskGIT corruption and masking (partly masked frames from a random first one on);
     # "whole_frames": every 2nd or 3rd frame masked whole, as the challenge evaluates: each masked frame predicted
     # from whole earlier frames, nothing of itself revealed (every shipped sample-world recipe)

@@ -71,7 +71,7 @@ class CopyHead(nn.Module):
         self.score_proj = nn.Linear(d_model, self.num_sources + 1)
         # opt-in (GenieConfig.copy_match_input): embedding of which neighbours hold a given token's own value
         self.match_proj = nn.Linear(self.num_sources, d_model, bias=False) if match_input else None
-        # decoding settings, not weights (STMaskGIT.set_copy_bias, STMaskGIT.set_greedy_tokens): added to every
+        # decoding settings, not weights (STMaskGIT.set_decoding): added to every
         # neighbour's score; whether `mode`'s copies take the single most weighted neighbour
         self.copy_bias = 0.0
         self.best_neighbour_copies = False
@@ -118,7 +118,7 @@ class CopyHead(nn.Module):
         so its mode is one of the offered neighbours' tokens or the readout's own factor-wise mode (every other
         token has no copy mass and a lower readout probability).
 
-        With best_neighbour_copies set (a decoding setting, STMaskGIT.set_greedy_tokens), the mode still decides
+        With best_neighbour_copies set (a decoding setting, STMaskGIT.set_decoding), the mode still decides
         between a copy and the readout's token, but a copy takes the token of the single most weighted neighbour
         instead of the token with the most weight summed over the neighbours holding it. The sum favours whatever
         token fills the neighbourhood, a majority filter: applied frame after frame in a rollout, it grows flat

@@ -1,119 +1,95 @@
-"""The decoding flags of every command that samples frames from a dynamics model (evaluate.py, genie/generate.py,
-python -m genie.diagnostics), defined once here, and the functions that check them and apply them to a model.
+"""How frames are sampled from a dynamics model: `DecodingConfig`, kept with the weights as decoding.json.
 
-    --maskgit_steps, --temperature, --unmask_mode: the MaskGIT sampler (genie.sampling);
-    --copy_bias, --greedy_tokens: how a model with a copy head (copy_radius) turns its copy-or-new mixture into
-        tokens (STMaskGIT.set_copy_bias, STMaskGIT.set_greedy_tokens); sampling at a temperature always draws whole
-        tokens from that mixture;
-    --stall_ratio: the stall rule of free-running futures (genie.inference.generate).
+A model trained here is meant to be sampled one way (the main command's: whole tokens at temperature 1, the copy
+head's neighbours weighted e^2). That choice travels with the checkpoint, as a Hugging Face model's
+generation_config.json does, so every command that samples the model decodes it the same way unless told
+otherwise. A checkpoint without decoding.json (the published GENIE_35M / 138M, or one saved before this file
+existed) decodes as the published code does: `DecodingConfig()`'s defaults.
+
+The teacher-forced protocol scores the model as trained, as the challenge defines it: greedy, with no copy bias
+(`DecodingConfig.teacher_forced`); only free-running futures use the temperature, copy bias, greedy tokens and stall
+rule.
 """
-import argparse
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Optional
 
-from common.cli import finite_float
-from common.errors import DataMismatchError
+from common.config import ConfigError, dataclass_from_dict, load_json
 from genie.sampling import UNMASK_MODES
 
-# how greedy decoding (--temperature 0) picks each token of a model with a copy head: choice -> what it does (the
-# first is the default)
+DECODING_NAME = "decoding.json"
+# how greedy decoding (temperature 0) picks each token of a model with a copy head: choice -> what it does
 GREEDY_TOKEN_CHOICES = {
     "joint": "the most probable whole token of the mixture",
     "best_neighbour": "as joint, but a copy takes the single most weighted neighbour's token, not the token with the "
                       "most weight summed over the neighbours holding it (which grows flat patches in rollouts)",
 }
-DEFAULT_MASKGIT_STEPS = 2
 
 
-def add_decoding_args(parser) -> None:
-    """--maskgit_steps, --temperature, --unmask_mode, --copy_bias, --greedy_tokens and --stall_ratio, in a group of
-    their own in --help. Check them with `check_decoding_args`, apply them with `apply_decoding`."""
-    group = parser.add_argument_group("decoding", "How frames are sampled from the model (the same flags in "
-                                                  "evaluate.py, genie/generate.py and genie.diagnostics).")
-    group.add_argument("--maskgit_steps", type=int, default=DEFAULT_MASKGIT_STEPS,
-                       help="MaskGIT sampling steps per frame, >= 1 (default: %(default)s).")
-    group.add_argument("--temperature", type=finite_float, default=0.0,
-                       help="Sampling temperature (divides the logits), >= 0; 0 samples greedily (argmax) "
-                            "(default: %(default)s). A model with a copy head draws whole tokens from its "
-                            "copy-or-new mixture.")
-    group.add_argument("--unmask_mode", choices=UNMASK_MODES, default=UNMASK_MODES[0],
-                       help="Which tokens each MaskGIT step reveals: random (the published default) or the most "
-                            "confident (greedy) (default: %(default)s).")
-    group.add_argument("--copy_bias", type=finite_float, default=0.0,
-                       help="Models with a copy head (copy_radius) only: added to every previous-frame neighbour's "
-                            "score when sampling (e^bias times the copy weight). > 0 gives sharper futures closer to "
-                            "the previous frame (better LPIPS, lower PSNR); 0 is the model as trained (default: "
-                            "%(default)s).")
-    add_token_choice_args(group)
-    add_stall_ratio_arg(group)
+@dataclass(frozen=True)
+class DecodingConfig:
+    """The sampler's settings. Defaults are the published code's decoding.
+
+    maskgit_steps: MaskGIT steps per frame. temperature: divides the logits; 0 is greedy (argmax). unmask_mode:
+    which tokens each step reveals (genie.sampling.UNMASK_MODES). copy_bias: models with a copy head only, added to
+    every previous-frame neighbour's score (e^bias times its weight); 0 is the model as trained. greedy_tokens: how
+    greedy decoding of a copy head's mixture picks a token (GREEDY_TOKEN_CHOICES). stall_ratio: free-running futures
+    only, off when None: once a generated frame changes at most this share of what the prompt's frames change per
+    step, every later frame repeats it (genie.inference.generate_frames).
+    """
+    maskgit_steps: int = 2
+    temperature: float = 0.0
+    unmask_mode: str = UNMASK_MODES[0]
+    copy_bias: float = 0.0
+    greedy_tokens: str = next(iter(GREEDY_TOKEN_CHOICES))
+    stall_ratio: Optional[float] = None
+
+    def __post_init__(self):
+        if self.maskgit_steps < 1:
+            raise ConfigError(f"decoding: maskgit_steps must be >= 1, got {self.maskgit_steps}")
+        if not self.temperature >= 0:
+            raise ConfigError(f"decoding: temperature must be >= 0, got {self.temperature}")
+        if self.unmask_mode not in UNMASK_MODES:
+            raise ConfigError(f"decoding: unmask_mode must be one of {UNMASK_MODES}, got {self.unmask_mode!r}")
+        if self.greedy_tokens not in GREEDY_TOKEN_CHOICES:
+            raise ConfigError(f"decoding: greedy_tokens must be one of {tuple(GREEDY_TOKEN_CHOICES)}, got "
+                              f"{self.greedy_tokens!r}")
+        if self.stall_ratio is not None and not 0.0 < self.stall_ratio <= 1.0:
+            raise ConfigError(f"decoding: stall_ratio must be None (off) or in (0, 1], got {self.stall_ratio}")
+        object.__setattr__(self, "temperature", float(self.temperature))
+        object.__setattr__(self, "copy_bias", float(self.copy_bias))
+
+    def override(self, **values) -> "DecodingConfig":
+        """A copy with the given fields replaced; a value of None keeps this config's (an unset flag)."""
+        return dataclasses.replace(self, **{k: v for k, v in values.items() if v is not None})
+
+    def teacher_forced(self) -> "DecodingConfig":
+        """The challenge's teacher-forced decoding of this model: its MaskGIT steps and unmasking, greedy, no copy
+        bias, the mixture's most probable tokens."""
+        return dataclasses.replace(self, temperature=0.0, copy_bias=0.0, greedy_tokens="joint", stall_ratio=None)
+
+    def sampler_kwargs(self) -> dict:
+        """The keyword arguments of genie.inference.generate_frames / teacher_forced (not the stall rule, which only
+        free-running futures take)."""
+        return dict(maskgit_steps=self.maskgit_steps, temperature=self.temperature, unmask_mode=self.unmask_mode)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "decoding") -> "DecodingConfig":
+        return dataclass_from_dict(cls, d, source)
 
 
-def add_token_choice_args(parser) -> None:
-    """--greedy_tokens (STMaskGIT.set_greedy_tokens)."""
-    described = "; ".join(f"{name}: {what}" for name, what in GREEDY_TOKEN_CHOICES.items())
-    parser.add_argument("--greedy_tokens", choices=tuple(GREEDY_TOKEN_CHOICES),
-                        default=next(iter(GREEDY_TOKEN_CHOICES)),
-                        help=f"How greedy decoding (--temperature 0) picks each token of a model with a copy head "
-                             f"(copy_radius): {described} (default: %(default)s). Models without a copy head decode "
-                             f"the same either way.")
+def load_decoding(checkpoint_dir) -> DecodingConfig:
+    """The checkpoint's decoding.json, or the published decoding when it has none."""
+    path = Path(checkpoint_dir) / DECODING_NAME
+    if not path.is_file():
+        return DecodingConfig()
+    return DecodingConfig.from_dict(load_json(path, "decoding config"), source=str(path))
 
 
-def _share(text: str) -> float:
-    """argparse type of a share in (0, 1]."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}") from None
-    if not 0.0 < value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text}")
-    return value
-
-
-def add_stall_ratio_arg(parser) -> None:
-    """--stall_ratio (genie.inference.generate's stall rule)."""
-    parser.add_argument("--stall_ratio", type=_share, default=None,
-                        help="Decoding rule for free-running futures, off by default: once a generated frame changes "
-                             "at most this fraction of what the prompt's frames change per step (the share of "
-                             "tokens that differ from the frame before; a number in (0, 1], e.g. 0.66), the "
-                             "window's future is taken to have stopped moving and every later frame repeats that "
-                             "one. A small model's greedy futures slow down and then decay in place; this holds "
-                             "them where they stopped. Needs at least 2 prompt frames. Teacher-forced predictions "
-                             "are unaffected.")
-
-
-def check_stall_ratio(parser, stall_ratio: Optional[float], num_prompt_frames: int) -> None:
-    """Usage error when --stall_ratio is set but the prompt has fewer than the 2 frames its motion is measured on."""
-    if stall_ratio is not None and num_prompt_frames < 2:
-        parser.error(f"--stall_ratio compares generated frames with the prompt's motion: it needs --num_prompt_frames "
-                     f">= 2, got {num_prompt_frames}")
-
-
-def check_decoding_args(parser, args: argparse.Namespace, num_prompt_frames: Optional[int] = None) -> None:
-    """Usage errors for decoding flags out of range; with `num_prompt_frames` (the prompt of free-running futures),
-    also for a --stall_ratio that the prompt cannot measure."""
-    if args.maskgit_steps < 1:
-        parser.error(f"--maskgit_steps must be >= 1, got {args.maskgit_steps}")
-    if args.temperature < 0:
-        parser.error(f"--temperature must be >= 0, got {args.temperature}")
-    if num_prompt_frames is not None:
-        check_stall_ratio(parser, args.stall_ratio, num_prompt_frames)
-
-
-def apply_decoding(model, args: argparse.Namespace, checkpoint) -> None:
-    """Set --copy_bias and --greedy_tokens on `model` (an STMaskGIT read from `checkpoint`, named in the error);
-    DataMismatchError when --copy_bias is set for a model without a copy head."""
-    if args.copy_bias and model.copy_head is None:
-        raise DataMismatchError(f"--copy_bias: the checkpoint {checkpoint} has no copy head (copy_radius)")
-    model.set_copy_bias(args.copy_bias)
-    model.set_greedy_tokens(args.greedy_tokens)
-
-
-def sampler_kwargs(args: argparse.Namespace) -> dict:
-    """The keyword arguments of genie.inference.generate / teacher_forced that the flags set (not the stall rule,
-    which only free-running generation takes)."""
-    return dict(maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode)
-
-
-def decoding_settings(args: argparse.Namespace) -> dict:
-    """The sampler as results record it: maskgit_steps, temperature, copy_bias, greedy_tokens, stall_ratio."""
-    return {"maskgit_steps": args.maskgit_steps, "temperature": args.temperature, "copy_bias": args.copy_bias,
-            "greedy_tokens": args.greedy_tokens, "stall_ratio": args.stall_ratio}
+def save_decoding(json_path, decoding: DecodingConfig) -> None:
+    Path(json_path).write_text(json.dumps(decoding.to_dict(), indent=2, sort_keys=True) + "\n")

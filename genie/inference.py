@@ -101,7 +101,7 @@ def generation_inputs(model, prompt_BTHW: torch.Tensor, num_new_frames: int, act
 
 
 @torch.no_grad()
-def generate(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_steps: int = 2,
+def generate_frames(model, prompt_BTHW: torch.Tensor, num_new_frames: int, maskgit_steps: int = 2,
              temperature: float = 0.0, unmask_mode: str = "random", generator: Optional[torch.Generator] = None,
              actions: Optional[torch.Tensor] = None, latent_actions: Optional[torch.Tensor] = None,
              control: bool = False, stall_ratio: Optional[float] = None) -> Tuple[torch.Tensor, torch.Tensor]:

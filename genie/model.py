@@ -7,7 +7,7 @@ whose "logits" are then log-probabilities; every path that reads out passes the 
 Parameter names, shapes and math follow docs/formats.md §3.
 
 The model owns its training loss (`forward`, so that DDP sees one call): factored cross entropy over the masked
-tokens of a collated batch (genie/masking.py), read out at those tokens only. Inference is genie/inference.py, the
+tokens of a collated batch (training/masking.py), read out at those tokens only. Inference is genie/inference.py, the
 uncached reference versions genie/reference.py, checkpoint files genie/checkpoint.py.
 """
 import math
@@ -24,18 +24,17 @@ from genie import checkpoint
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, TrainingRecipe
 from genie.copy_head import CopyHead, Prediction, previous_frames
+from genie.decoding import DecodingConfig, load_decoding
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.transformer import STTransformer, TemporalKVCache, TemporalMode
 
-# how greedy decoding turns a copy head's mixture into tokens (STMaskGIT.set_greedy_tokens)
-GREEDY_TOKENS = ("joint", "best_neighbour")
 MUP_BASE_D_MODEL = 256  # the published muP base shape (set_mup_shapes hard-codes d_model 256)
 
 
 @dataclass
 class MaskGITBatch:
-    """A collated training batch (genie/masking.py); token ids are int64 (B, T, H, W)."""
+    """A collated training batch (training/masking.py); token ids are int64 (B, T, H, W)."""
     input_ids: torch.Tensor  # what the model sees: corrupted, the mask token where it is to predict
     labels: torch.Tensor  # the clean tokens
     actions: Optional[torch.Tensor] = None  # (B, T, D) float: the config's real action streams
@@ -97,6 +96,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         self.copy_head = None if config.copy_radius is None else CopyHead(
             config.d_model, config.copy_radius, config.num_factored_vocabs, config.factored_vocab_size,
             config.mask_token_id, config.copy_match_input)
+        self.decoding = DecodingConfig()  # how it is sampled (set_decoding); not a weight
 
     @property
     def mask_token_id(self) -> int:
@@ -181,32 +181,19 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         """`copy_sources` of a window's own frames (B, T, H, W), frame 0 with no frame before it."""
         return None if self.copy_head is None else self.copy_sources(previous_frames(x_BTHW, self.mask_token_id))
 
-    def set_copy_bias(self, bias: float) -> None:
-        """Decoding setting of a model with a copy head: add `bias` to the score of every previous-frame neighbour,
-        i.e. multiply the copy weights by e^bias against the new-token option (then renormalize). 0 (the default)
-        is the trained model; > 0 gives sharper futures that hold more of the previous frame, < 0 the opposite.
-        Not saved with the weights; training never sets it."""
-        if self.copy_head is None:
-            if bias:
-                raise ValueError("copy_bias needs a model with a copy head (config.copy_radius); this one has none")
-            return
-        self.copy_head.copy_bias = float(bias)
-
-    def set_greedy_tokens(self, choice: str) -> None:
-        """Decoding setting of a model with a copy head: how greedy decoding (temperature 0) turns the copy-or-new
-        mixture into tokens (GREEDY_TOKENS):
-
-        - "joint" (the default): the mixture's most probable whole token (`CopyHead.mode`);
-        - "best_neighbour": "joint"'s choice between a copy and a new token, but a copy takes the single most
-          weighted neighbour's token rather than the token with the most weight summed over the neighbours holding
-          it (which grows flat patches in rollouts; `CopyHead.mode`).
-
-        No effect on a model without a copy head, whose distribution is a product over factors; not saved with the
-        weights."""
-        if choice not in GREEDY_TOKENS:
-            raise ValueError(f"greedy tokens must be one of {GREEDY_TOKENS}, got {choice!r}")
+    def set_decoding(self, decoding: DecodingConfig) -> None:
+        """Sample this model with `decoding` from now on (genie/decoding.py; saved with the checkpoint as
+        decoding.json). Of its fields the model itself applies those of a copy head: copy_bias, added to the score
+        of every previous-frame neighbour (e^bias times its copy weight against a new token; > 0 gives sharper
+        futures that hold more of the previous frame), and greedy_tokens, how greedy decoding turns the mixture into
+        tokens ("joint": its most probable whole token; "best_neighbour": a copy takes the single most weighted
+        neighbour's token, `CopyHead.mode`). The samplers read the rest from `model.decoding`."""
+        if self.copy_head is None and decoding.copy_bias:
+            raise ValueError("copy_bias needs a model with a copy head (config.copy_radius); this one has none")
         if self.copy_head is not None:
-            self.copy_head.best_neighbour_copies = choice == "best_neighbour"
+            self.copy_head.copy_bias = decoding.copy_bias
+            self.copy_head.best_neighbour_copies = decoding.greedy_tokens == "best_neighbour"
+        self.decoding = decoding
 
     def readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Hidden states (..., C) -> factored logits (..., V, F).
@@ -327,10 +314,12 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
     # ---------------------------------------------------------------- checkpoints (genie/checkpoint.py)
     def save_pretrained(self, save_directory: Union[str, Path], *, config=None, repo_id: Optional[str] = None,
                         push_to_hub: bool = False, model_card_kwargs: Optional[dict] = None,
-                        recipe: Optional[TrainingRecipe] = None, **push_to_hub_kwargs):
-        """Write config.json (+ the training recipe, when given) and model.safetensors atomically; `config` is
-        ignored (the model's own GenieConfig is saved)."""
-        checkpoint.save_model(self, save_directory, recipe)
+                        recipe: Optional[TrainingRecipe] = None, run_recipe: Optional[dict] = None,
+                        **push_to_hub_kwargs):
+        """Write config.json (+ the training recipe, when given), model.safetensors, decoding.json (`decoding`) and
+        recipe.json (`run_recipe`, when given) atomically; `config` is ignored (the model's own GenieConfig is
+        saved)."""
+        checkpoint.save_model(self, save_directory, recipe, run_recipe)
         if push_to_hub:
             return self.push_to_hub(repo_id or Path(save_directory).name, model_card_kwargs=model_card_kwargs,
                                     **push_to_hub_kwargs)
@@ -340,7 +329,8 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
     def from_pretrained(cls, pretrained_model_name_or_path: Union[str, Path], *, revision: Optional[str] = None,
                         cache_dir=None, force_download: bool = False, local_files_only: bool = False,
                         token=None, map_location: str = "cpu", **kwargs) -> "STMaskGIT":
-        """Load a checkpoint directory (config.json + model.safetensors) or a Hugging Face hub id, in eval mode."""
+        """Load a checkpoint directory (config.json + model.safetensors) or a Hugging Face hub id, in eval mode,
+        set to decode as its decoding.json says (the published decoding when it has none)."""
         if kwargs:
             raise TypeError(f"STMaskGIT.from_pretrained: unexpected arguments {sorted(kwargs)}")
         checkpoint_dir = checkpoint.resolve_checkpoint_dir(
@@ -348,6 +338,7 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             local_files_only=local_files_only, token=token)
         model = cls(checkpoint.load_config(checkpoint_dir))
         checkpoint.load_weights(model, checkpoint_dir, map_location)
+        model.set_decoding(load_decoding(checkpoint_dir))
         return model.eval()
 
 

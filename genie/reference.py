@@ -38,7 +38,7 @@ def generate_uncached(model, prompt_BTHW: torch.Tensor, num_new_frames: int, mas
                       generator: Optional[torch.Generator] = None, actions: Optional[torch.Tensor] = None,
                       latent_actions: Optional[torch.Tensor] = None,
                       control: bool = False) -> Tuple[torch.Tensor, torch.Tensor]:
-    """genie.inference.generate by full recomputation: same arguments, same results."""
+    """genie.inference.generate_frames by full recomputation: same arguments, same results."""
     cond_BTC, tokens_BTHW = generation_inputs(model, prompt_BTHW, num_new_frames, actions, latent_actions, control)
     T0, total = prompt_BTHW.shape[1], tokens_BTHW.shape[1]
     all_logits = []

@@ -1,5 +1,5 @@
 """Action conditioning of the dynamics model: published layout kept, prompt-only rule, cache equivalence, and the
-action paths of train.py, genie/generate.py and evaluate.py (real actions and LAM latent actions)."""
+action paths of train.py, generate.py and evaluate.py (real actions and LAM latent actions)."""
 import json
 
 import numpy as np
@@ -10,10 +10,10 @@ import evaluate
 import train
 import visualize
 from data import RawTokenDataset, read_metadata, write_token_dataset
-import genie.evaluation
-import genie.generate as generate_script
+import evaluation.protocols
+import generate as generate_script
 from genie import GenieConfig, MaskGITBatch, STMaskGIT
-from genie.inference import generate, teacher_forced
+from genie.inference import generate_frames, teacher_forced
 from genie.reference import generate_uncached, teacher_forced_uncached
 from lam.probe import button_combination_ids
 from common.cli import run_main
@@ -152,7 +152,7 @@ def test_generation_ignores_actions_after_the_prompt_unless_controlled():
     later_actions, later_latent = perturbed(actions, latent, P, seed=1)
 
     def run(a, la, **kw):
-        return generate(model, x[:, :P], 3, maskgit_steps=2, temperature=1.0, actions=a, latent_actions=la,
+        return generate_frames(model, x[:, :P], 3, maskgit_steps=2, temperature=1.0, actions=a, latent_actions=la,
                         generator=torch.Generator().manual_seed(5), **kw)
 
     tokens, logits = run(actions, latent)
@@ -194,7 +194,7 @@ def test_latent_action_changes_the_generated_frame():
     for action in (0, 3):
         played = latent.clone()
         played[:, 2:] = action
-        logits.append(generate(model, x[:, :2], 3, maskgit_steps=1, latent_actions=played, control=True)[1])
+        logits.append(generate_frames(model, x[:, :2], 3, maskgit_steps=1, latent_actions=played, control=True)[1])
     assert not torch.allclose(logits[0][:, :, :, 0], logits[1][:, :, :, 0], atol=1e-3)
 
 
@@ -216,7 +216,7 @@ def test_training_forward_uses_actions_and_drops_them():
     with pytest.raises(ValueError, match="latent action ids must be in"):
         model(MaskGITBatch(x, x, latent_actions=latent + K + 1))
     with pytest.raises(ValueError, match="no action inputs"):
-        generate(make_model(0, 0), x[:, :2], 1, actions=actions)
+        generate_frames(make_model(0, 0), x[:, :2], 1, actions=actions)
 
 
 # ------------------------------------------------------------------ scripts
@@ -300,9 +300,9 @@ def test_train_and_rollout_with_step_mean_actions(action_data, tmp_path, capsys,
 
     def spy(model, prompt_BTHW, num_new_frames, *args, **kwargs):
         calls.append(kwargs)
-        return generate(model, prompt_BTHW, num_new_frames, *args, **kwargs)
+        return generate_frames(model, prompt_BTHW, num_new_frames, *args, **kwargs)
 
-    monkeypatch.setattr(genie.evaluation, "generate", spy)
+    monkeypatch.setattr(evaluation.protocols, "generate", spy)
     assert evaluate.main(["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(out / "final_checkpt"),
                           "--window_size", "4", "--stride", "3", "--device", "cpu", "--max_examples", "3",
                           "--tokenizer_ckpt", "stub", "--skip_lpips", "--protocol", "rollout",
@@ -372,7 +372,7 @@ def stub_scorer(monkeypatch):
         def lpips_distances(self, images_a, images_b):
             return (images_a.float() - images_b.float()).abs().mean(dim=(1, 2, 3)) / 255
 
-    monkeypatch.setattr(genie.evaluation, "FrameScorer", StubScorer)
+    monkeypatch.setattr(evaluation.protocols, "FrameScorer", StubScorer)
 
 
 def test_evaluate_adds_latent_action_metrics(action_data, latent_ckpt, tmp_path, capsys, stub_scorer):
@@ -419,9 +419,9 @@ def test_rollout_plays_the_windows_action_rows(action_data, latent_ckpt, capsys,
 
     def spy(model, prompt_BTHW, num_new_frames, *args, **kwargs):
         calls.append((prompt_BTHW.shape[1], num_new_frames, kwargs))
-        return generate(model, prompt_BTHW, num_new_frames, *args, **kwargs)
+        return generate_frames(model, prompt_BTHW, num_new_frames, *args, **kwargs)
 
-    monkeypatch.setattr(genie.evaluation, "generate", spy)
+    monkeypatch.setattr(evaluation.protocols, "generate", spy)
     argv = ["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(latent_ckpt), "--window_size", "4",
             "--stride", "1", "--batch_size", "4", "--device", "cpu", "--max_examples", "4", "--tokenizer_ckpt",
             "stub", "--skip_lpips", "--protocol", "rollout", "--num_prompt_frames", "1"]

@@ -8,7 +8,7 @@ import pytest
 
 from common.cli import run_main
 from data import RawTokenDataset, write_token_dataset
-from genie.baselines import copy_baseline, factor_match_rate, lookup_baselines, main
+from evaluation.baselines import copy_baseline, factor_match_rate, lookup_baselines, main
 
 
 def _dataset(path, frames_NHW):
@@ -91,11 +91,11 @@ def test_cli_names_the_bad_input_in_one_line(tmp_path, capsys):
 
     def error(argv):  # stderr's one line of the command, exit status 1
         capsys.readouterr()
-        assert run_main("genie.baselines", main, argv) == 1
+        assert run_main("evaluation.baselines", main, argv) == 1
         return capsys.readouterr().err.splitlines()[-1]
 
     missing = ["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "missing"), *args]
-    assert re.match("^genie.baselines: error: .*missing: token dataset directory not found", error(missing))
+    assert re.match("^evaluation.baselines: error: .*missing: token dataset directory not found", error(missing))
     write_token_dataset(tmp_path / "v64", frames, metadata={"vocab_size": 64, "hz": 35})
     assert re.search("t: vocab_size 16 differs from .*v64's 64",
                      error(["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "v64"), *args]))

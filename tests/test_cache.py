@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from genie import GenieConfig, STMaskGIT, TemporalKVCache
-from genie.inference import check_frames, generate, run_frames, teacher_forced
+from genie.inference import check_frames, generate_frames, run_frames, teacher_forced
 from genie.reference import generate_uncached, teacher_forced_uncached
 from genie.transformer import TemporalMode
 
@@ -93,9 +93,9 @@ def test_generation_beyond_position_embeddings_and_bad_cache_use_raise():
     model = make_model(qk_norm=False)
     prompt = tokens(model, B=1, T=4)
     with pytest.raises(ValueError, match="position embeddings for T = 6"):
-        generate(model, prompt, 3)
+        generate_frames(model, prompt, 3)
     with pytest.raises(ValueError, match="at least one"):
-        generate(model, prompt, 0)
+        generate_frames(model, prompt, 0)
     with pytest.raises(ValueError, match="at least 2 frames"):
         teacher_forced(model, prompt[:, :1])
     cache = TemporalKVCache(model.config.num_layers, 3)

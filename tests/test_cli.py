@@ -93,10 +93,10 @@ def test_cpu_has_native_bf16_is_unknown_without_cpuinfo(tmp_path):
 THREADED_SCRIPTS = [
     ("train", []),
     ("evaluate", []),
-    ("genie.generate", []),
+    ("generate", []),
     ("visualize", ["--token_dir", "tokens"]),
     ("magvit2.tokenize_frames", ["frames.npz", "--tokenizer_ckpt", "tok", "--output_dir", "out"]),
-    ("magvit2.build_sample", []),
+    ("sample_world.build", []),
     ("magvit2.train", ["--train_data", "x.npz", "--output_dir", "o"]),
     ("lam.train", ["--train_data", "x.npz", "--output_dir", "o"]),
     ("lam.label", ["--lam_dir", "lam", "--frames", "x.npz", "--token_dir", "tokens"]),
@@ -113,8 +113,8 @@ def test_every_torch_script_takes_num_threads(module, argv, capsys):
     assert "argument --num_threads: must be 0 or more, got -2" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("module, argv", [s for s in THREADED_SCRIPTS if s[0] != "magvit2.build_sample"],
-                         ids=[m for m, _ in THREADED_SCRIPTS if m != "magvit2.build_sample"])
+@pytest.mark.parametrize("module, argv", [s for s in THREADED_SCRIPTS if s[0] != "sample_world.build"],
+                         ids=[m for m, _ in THREADED_SCRIPTS if m != "sample_world.build"])
 def test_every_torch_script_applies_num_threads_before_its_inputs(module, argv, tmp_path, monkeypatch):
     """The count is set before anything is read: here every input is missing, so the script stops with its error
     (build_sample is left out: with nothing built yet it would start rendering)."""
@@ -131,7 +131,7 @@ def test_every_torch_script_applies_num_threads_before_its_inputs(module, argv, 
 
 @pytest.mark.parametrize("module, argv, flag", [
     ("train", [], "--learning_rate"), ("train", [], "--weight_decay"), ("evaluate", [], "--temperature"),
-    ("genie.generate", [], "--copy_bias"), ("lam.train", ["--train_data", "x.npz"], "--max_grad_norm"),
+    ("generate", [], "--copy_bias"), ("lam.train", ["--train_data", "x.npz"], "--max_grad_norm"),
     ("magvit2.train", ["--train_data", "x.npz", "--output_dir", "o"], "--learning_rate"),
 ])
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf"])

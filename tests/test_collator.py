@@ -8,7 +8,7 @@ import torch
 from data import RawTokenDataset, TokenDatasetError, write_token_dataset
 from genie.config import GenieConfig, TrainingRecipe
 from genie.factorization import factorize_token_ids
-from genie.masking import get_maskgit_collator
+from training.masking import get_maskgit_collator
 from genie.model import MaskGITBatch
 
 T, S, VOCAB = 6, 16, 64  # 2 factors of 8

@@ -5,12 +5,11 @@ import pytest
 import torch
 
 from genie.decoding import GREEDY_TOKEN_CHOICES
-from common.config import ConfigError
 from genie import GenieConfig, STMaskGIT
 from genie.copy_head import CopyHead, previous_frames
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
-from genie.inference import generate, teacher_forced
-from genie.model import GREEDY_TOKENS
+from genie.inference import generate_frames, teacher_forced
+from common.config import ConfigError
 from genie.reference import dense_copy_mixture, generate_uncached, teacher_forced_uncached
 from genie.sampling import sample_mixture_tokens
 
@@ -94,7 +93,7 @@ def test_a_pointer_fixed_on_one_offset_generates_the_shifted_previous_frame(dy, 
         model.copy_head.score_proj.bias.fill_(-50.0)
         model.copy_head.score_proj.bias[k] = 50.0
     prompt = torch.randint(0, MASK, (2, 2, 4, 4), generator=torch.Generator().manual_seed(1))
-    out, _ = generate(model, prompt, 3, maskgit_steps=2)
+    out, _ = generate_frames(model, prompt, 3, maskgit_steps=2)
     ref, _ = generate_uncached(model, prompt, 3, maskgit_steps=2)
     assert torch.equal(out, ref)
     for t in range(2, 5):
@@ -217,16 +216,16 @@ def test_copy_bias_scales_the_copy_weights_and_is_a_decoding_setting(tmp_path):
     x = torch.randint(0, MASK, (1, 3, 4, 4))
     with torch.no_grad():
         before = model.logits(x)
-        model.set_copy_bias(2.0)
+        model.set_decoding(model.decoding.override(copy_bias=2.0))
         assert not torch.equal(model.logits(x), before)
         model.save_pretrained(tmp_path / "ckpt")
         assert STMaskGIT.from_pretrained(tmp_path / "ckpt").copy_head.copy_bias == 0.0  # not saved
-        model.set_copy_bias(0.0)
+        model.set_decoding(model.decoding.override(copy_bias=0.0))
         torch.testing.assert_close(model.logits(x), before, atol=0, rtol=0)
     plain_model = STMaskGIT(GenieConfig(num_layers=1))
-    plain_model.set_copy_bias(0.0)
+    plain_model.set_decoding(plain_model.decoding.override(copy_bias=0.0))
     with pytest.raises(ValueError, match="copy head"):
-        plain_model.set_copy_bias(1.0)
+        plain_model.set_decoding(plain_model.decoding.override(copy_bias=1.0))
 
 
 
@@ -293,16 +292,16 @@ def test_best_neighbour_copies_take_the_single_most_weighted_neighbour():
     assert (ids != joint_ids).any()
 
 
-def test_greedy_token_choices_are_checked_and_match_the_scripts_flags():
+def test_greedy_token_choices_are_checked():
     model = tiny_copy_model()
-    with pytest.raises(ValueError, match="greedy tokens must be one of"):
-        model.set_greedy_tokens("nearest")
-    with pytest.raises(ValueError, match="greedy tokens must be one of"):
-        model.set_greedy_tokens("factored")  # removed: each factor's argmax
-    assert tuple(GREEDY_TOKEN_CHOICES) == GREEDY_TOKENS and GREEDY_TOKENS[0] == "joint"
-    model.set_greedy_tokens("best_neighbour")
+    with pytest.raises(ConfigError, match="greedy_tokens must be one of"):
+        model.set_decoding(model.decoding.override(greedy_tokens="nearest"))
+    with pytest.raises(ConfigError, match="greedy_tokens must be one of"):
+        model.set_decoding(model.decoding.override(greedy_tokens="factored"))  # removed: each factor's argmax
+    assert next(iter(GREEDY_TOKEN_CHOICES)) == "joint"
+    model.set_decoding(model.decoding.override(greedy_tokens="best_neighbour"))
     assert model.copy_head.best_neighbour_copies
-    model.set_greedy_tokens("joint")
+    model.set_decoding(model.decoding.override(greedy_tokens="joint"))
     assert not model.copy_head.best_neighbour_copies
 
 
@@ -323,14 +322,14 @@ def test_greedy_decoding_takes_the_joint_mode():
             prediction.logits.argmax(dim=-2), F_, V).view(4, 4, 4)
         assert not torch.equal(mode, factor_wise)
         # one MaskGIT step decodes the first new frame from the prompt alone: the joint mode, not each factor's argmax
-        torch.testing.assert_close(generate(model, x[:, :2], 1, maskgit_steps=1)[0][:, 2], mode, atol=0, rtol=0)
-        joint, joint_tf = generate(model, x[:, :2], 3, generator=gen())[0], teacher_forced(model, x, generator=gen())[0]
+        torch.testing.assert_close(generate_frames(model, x[:, :2], 1, maskgit_steps=1)[0][:, 2], mode, atol=0, rtol=0)
+        joint, joint_tf = generate_frames(model, x[:, :2], 3, generator=gen())[0], teacher_forced(model, x, generator=gen())[0]
         torch.testing.assert_close(joint_tf, teacher_forced_uncached(model, x, generator=gen())[0], atol=0, rtol=0)
         torch.testing.assert_close(joint, generate_uncached(model, x[:, :2], 3, generator=gen())[0], atol=0, rtol=0)
         # sampling at a temperature does not read the greedy setting
-        drawn = generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0]
-        model.set_greedy_tokens("best_neighbour")
-        torch.testing.assert_close(generate(model, x[:, :2], 2, temperature=1.0, generator=gen())[0], drawn, atol=0,
+        drawn = generate_frames(model, x[:, :2], 2, temperature=1.0, generator=gen())[0]
+        model.set_decoding(model.decoding.override(greedy_tokens="best_neighbour"))
+        torch.testing.assert_close(generate_frames(model, x[:, :2], 2, temperature=1.0, generator=gen())[0], drawn, atol=0,
                                    rtol=0)
 
 
@@ -338,18 +337,18 @@ def test_best_neighbour_rollouts_agree_cached_and_uncached_and_differ_from_joint
     model = tiny_copy_model(radius=1, seed=4, match=True)
     with torch.no_grad():  # weights spread over the neighbours (the tiny model's are peaked), copies preferred
         model.copy_head.score_proj.weight.mul_(0.05)
-    model.set_copy_bias(3.0)
+    model.set_decoding(model.decoding.override(copy_bias=3.0))
     torch.manual_seed(1)
     # a few tokens repeated over the frames, so that the neighbours' summed weights and the heaviest one disagree
     x = torch.tensor([5, 300, 1000, 2500])[torch.randint(0, 4, (4, 6, 4, 4))]
 
     def rollouts():
         with torch.no_grad():
-            return (generate(model, x[:, :2], 3, generator=torch.Generator().manual_seed(0))[0],
+            return (generate_frames(model, x[:, :2], 3, generator=torch.Generator().manual_seed(0))[0],
                     generate_uncached(model, x[:, :2], 3, generator=torch.Generator().manual_seed(0))[0])
 
     joint, _ = rollouts()
-    model.set_greedy_tokens("best_neighbour")
+    model.set_decoding(model.decoding.override(greedy_tokens="best_neighbour"))
     best, best_uncached = rollouts()
     torch.testing.assert_close(best, best_uncached, atol=0, rtol=0)
     torch.testing.assert_close(best[:, :2], x[:, :2], atol=0, rtol=0)
@@ -364,8 +363,8 @@ def test_sampling_draws_whole_tokens():
 
     x = torch.randint(0, MASK // 8, (4, 6, 4, 4))
     x[:, 1:] = x[:, :1].roll(1, dims=-1)
-    model.set_copy_bias(30.0)  # no weight left on a new token: every whole-token draw is a neighbour's token
-    joint = generate(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0, generator=gen())[0][:, 2]
+    model.set_decoding(model.decoding.override(copy_bias=30.0))  # no weight left on a new token: every whole-token draw is a neighbour's token
+    joint = generate_frames(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0, generator=gen())[0][:, 2]
     torch.testing.assert_close(joint, generate_uncached(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0,
                                                         generator=gen())[0][:, 2], atol=0, rtol=0)
     sources = model.copy_sources(x[:, 1:2])[:, 0]  # (B, S, K): frame 2's neighbours in frame 1
@@ -428,15 +427,15 @@ def test_stalled_rollouts_hold_the_frame_where_they_stopped():
     model = tiny_copy_model(radius=1, seed=4, match=True)
     with torch.no_grad():
         model.copy_head.score_proj.weight.mul_(0.05)
-    model.set_copy_bias(3.0)
-    model.set_greedy_tokens("best_neighbour")
+    model.set_decoding(model.decoding.override(copy_bias=3.0))
+    model.set_decoding(model.decoding.override(greedy_tokens="best_neighbour"))
     torch.manual_seed(1)
     x = torch.tensor([5, 300, 1000, 2500])[torch.randint(0, 4, (8, 6, 4, 4))]
     x[:4, 1] = x[:4, 0].roll(1, dims=-1)  # prompts that move in different amounts
     P = 2
 
     def rollout(ratio=None, prompt=P):
-        return generate(model, x[:, :prompt], 6 - prompt, generator=torch.Generator().manual_seed(0),
+        return generate_frames(model, x[:, :prompt], 6 - prompt, generator=torch.Generator().manual_seed(0),
                         stall_ratio=ratio)[0]
 
     free = rollout()

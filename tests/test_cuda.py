@@ -80,7 +80,7 @@ def test_cached_inference_equals_recomputation_on_the_device():
     run_python("""
         import torch
         from genie import GenieConfig, STMaskGIT
-        from genie.inference import generate, teacher_forced
+        from genie.inference import generate_frames, teacher_forced
         from genie.reference import generate_uncached, teacher_forced_uncached
 
         torch.manual_seed(0)
@@ -96,7 +96,7 @@ def test_cached_inference_equals_recomputation_on_the_device():
         def gen(seed):
             return torch.Generator(device=DEVICE).manual_seed(seed)
 
-        cached = generate(model, x[:, :2], 4, 2, 1.0, generator=gen(3))
+        cached = generate_frames(model, x[:, :2], 4, 2, 1.0, generator=gen(3))
         full = generate_uncached(model, x[:, :2], 4, 2, 1.0, generator=gen(3))
         assert torch.equal(cached[0], full[0])
         torch.testing.assert_close(cached[1], full[1], atol=1e-4, rtol=1e-4)
@@ -150,7 +150,7 @@ def test_evaluate_and_generate_on_the_device(data, tmp_path):
     out = run_script(["evaluate.py", "--checkpoint_dir", ckpt, "--val_data_dir", data["val"], "--window_size", "4",
                       "--stride", "1", "--skip_lpips", "--device", DEVICE])
     assert '"acc"' in out and '"loss"' in out
-    run_script(["genie/generate.py", "--checkpoint_dir", ckpt, "--val_data_dir", data["val"], "--output_dir",
+    run_script(["generate.py", "--checkpoint_dir", ckpt, "--val_data_dir", data["val"], "--output_dir",
                 tmp_path / "generated", "--window_size", "4", "--stride", "1", "--num_prompt_frames", "2",
                 "--num_examples", "2", "--device", DEVICE])
     assert (tmp_path / "generated" / "video.bin").is_file()

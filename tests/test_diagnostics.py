@@ -1,5 +1,5 @@
-"""python -m genie.diagnostics: per-window scores, withheld actions, one-line errors; and the decoding flags
-(genie/decoding.py) that evaluate.py, genie/generate.py and the diagnostics share. The copy ceiling's tests are in
+"""python -m evaluation.diagnostics: per-window scores, withheld actions, one-line errors; and the decoding flags
+(genie/decoding.py) that evaluate.py, generate.py and the diagnostics share. The copy ceiling's tests are in
 tests/test_copy_ceiling.py, the breakdown's in tests/test_rollout_breakdown.py."""
 import argparse
 import json
@@ -11,16 +11,16 @@ import torch
 
 import evaluate
 import play
-import genie.evaluation
+import evaluation.protocols
 from tests.cli_runner import run_as_main
-import genie.generate
+import generate
 from common.cli import run_main
 from data import RawTokenDataset, write_token_dataset
 from genie import STMaskGIT
 from genie.decoding import GREEDY_TOKEN_CHOICES
-from genie.diagnostics import build_parser, main
-from genie.evaluation import example_indices
-from genie.model import GREEDY_TOKENS
+from evaluation.diagnostics import build_parser, main
+from evaluation.protocols import example_indices
+from genie.decoding import GREEDY_TOKEN_CHOICES as GREEDY_TOKENS
 from tests.test_evaluate import (REPO, VOCAB, error_line, eval_args, last_json_line, make_checkpoint,  # noqa: F401
                                  tiny)
 
@@ -30,7 +30,7 @@ PER_HORIZON_KEYS = [f"{name}_{metric}" for name in ("rollout", "hold") for metri
 
 
 def diagnose(argv) -> int:
-    return run_main("genie.diagnostics", main, argv)
+    return run_main("evaluation.diagnostics", main, argv)
 
 
 def window_args(subcommand, data, *extra):
@@ -83,7 +83,7 @@ def test_bad_per_window_flags_are_usage_errors(tiny, capsys, extra, message):
         main(window_args("per_window", tiny.data, "--checkpoint_dir", str(tiny.ckpt), *extra))
     assert exit_info.value.code == 2
     line = error_line(capsys.readouterr().err)
-    assert line.startswith("python -m genie.diagnostics per_window: error: ") and message in line
+    assert line.startswith("python -m evaluation.diagnostics per_window: error: ") and message in line
 
 
 # ------------------------------------------------------------------ withheld_actions
@@ -116,8 +116,8 @@ def withheld_args(world, data, *extra):
 def test_withheld_actions_gives_the_model_none(action_world, tiny, tmp_path, capsys, monkeypatch):
     calls = []
     for name in ("generate", "teacher_forced"):
-        real = getattr(genie.evaluation, name)
-        monkeypatch.setattr(genie.evaluation, name,
+        real = getattr(evaluation.protocols, name)
+        monkeypatch.setattr(evaluation.protocols, name,
                             lambda *a, real=real, **kw: calls.append(kw) or real(*a, **kw))
     # the rollout protocol on a dataset without actions/: no action stream needed
     out = tmp_path / "windows.jsonl"
@@ -135,7 +135,7 @@ def test_withheld_actions_gives_the_model_none(action_world, tiny, tmp_path, cap
     withheld = last_json_line(capsys.readouterr().out)
     assert calls and all(kw["latent_actions"] is None for kw in calls)
     assert withheld["actions_withheld"] is True and "delta_psnr" not in withheld
-    assert set(withheld) == set(genie.evaluation.TEACHER_FORCED_KEYS) | {"num_examples", "actions_withheld"}
+    assert set(withheld) == set(evaluation.protocols.TEACHER_FORCED_KEYS) | {"num_examples", "actions_withheld"}
     blind_argv = ["--checkpoint_dir", str(action_world / "blind"), "--val_data_dir", str(action_world / "with_actions"),
                   "--window_size", "8", "--stride", "1", "--max_examples", "3", "--device", "cpu", "--skip_lpips",
                   "--train_data_dir", str(tmp_path / "none")]  # no latent action probe
@@ -150,7 +150,7 @@ def test_withheld_actions_needs_a_model_with_actions(tiny, capsys):
     assert diagnose(["withheld_actions", "--checkpoint_dir", str(tiny.ckpt), "--val_data_dir", str(tiny.data),
                      "--window_size", "8", "--stride", "3", "--device", "cpu", "--skip_lpips"]) == 1
     line = error_line(capsys.readouterr().err)
-    assert line.startswith("genie.diagnostics: error: withheld_actions: the checkpoint") and "takes no actions" in line
+    assert line.startswith("evaluation.diagnostics: error: withheld_actions: the checkpoint") and "takes no actions" in line
 
 
 @pytest.mark.parametrize("extra, message", [
@@ -169,15 +169,15 @@ def test_bad_withheld_actions_flags_are_usage_errors(action_world, capsys, extra
 
 # ------------------------------------------------------------------ the command line
 def test_bad_input_ends_the_command_in_one_line(tiny, tmp_path):
-    """As `python -m genie.diagnostics`: a usage error (exit status 2) and a missing dataset (1) end in one error
+    """As `python -m evaluation.diagnostics`: a usage error (exit status 2) and a missing dataset (1) end in one error
     line, no traceback."""
     env = {k: v for k, v in os.environ.items() if k != "WORLD_SIZE"}
     cases = [(["breakdown", "windows.jsonl"], 2,
-              "python -m genie.diagnostics breakdown: error: the following arguments are required: --val_data_dir"),
+              "python -m evaluation.diagnostics breakdown: error: the following arguments are required: --val_data_dir"),
              (["copy_ceiling", "--val_data_dir", str(tmp_path / "missing"), "--skip_lpips"], 1,
-              f"genie.diagnostics: error: {tmp_path / 'missing'}"),
-             ([], 2, "python -m genie.diagnostics: error: the following arguments are required: SUBCOMMAND")]
-    ran = run_as_main({i: ("genie.diagnostics", argv) for i, (argv, _, _) in enumerate(cases)}, env=env)
+              f"evaluation.diagnostics: error: {tmp_path / 'missing'}"),
+             ([], 2, "python -m evaluation.diagnostics: error: the following arguments are required: SUBCOMMAND")]
+    ran = run_as_main({i: ("evaluation.diagnostics", argv) for i, (argv, _, _) in enumerate(cases)}, env=env)
     for i, (argv, code, message) in enumerate(cases):
         proc = ran[i]
         assert proc.returncode == code and proc.stdout == ""
@@ -191,7 +191,7 @@ def subcommand_parsers():
 
 
 def command_parsers():
-    """(name, parser) of every command line: evaluate.py, genie/generate.py, each diagnostic."""
+    """(name, parser) of every command line: evaluate.py, generate.py, each diagnostic."""
     parsers = {"evaluate.py": evaluate_parser(), "generate.py": generate_parser()}
     parsers.update({f"diagnostics {name}": sub for name, sub in subcommand_parsers().items()})
     return parsers
@@ -219,7 +219,7 @@ def evaluate_parser():
 
 
 def generate_parser():
-    return capture_parser(genie.generate, [])
+    return capture_parser(generate, [])
 
 
 def test_every_flag_is_explained_in_help():
@@ -257,4 +257,4 @@ def test_help_of_every_command(capsys):
             main([*argv, "--help"])
         assert exit_info.value.code == 0
         out = capsys.readouterr().out
-        assert out.startswith(f"usage: python -m genie.diagnostics {' '.join(argv)}".rstrip())
+        assert out.startswith(f"usage: python -m evaluation.diagnostics {' '.join(argv)}".rstrip())

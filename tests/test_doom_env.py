@@ -1,4 +1,4 @@
-"""The real sample world as a Gymnasium environment (data/doom_env.py): the Gymnasium contract, the action meaning
+"""The real sample world as a Gymnasium environment (envs/doom.py): the Gymnasium contract, the action meaning
 of one window step, and starts that replay a recorded walk to the frame."""
 import numpy as np
 import pytest
@@ -7,7 +7,7 @@ from gymnasium.utils.env_checker import check_env
 pytest.importorskip("vizdoom")
 
 from data import sample_world as sw  # noqa: E402
-from data.doom_env import (DoomEnv, EnvInputError, STEP_TICS, buttons_from_names, recorded_start,  # noqa: E402
+from envs.doom import (DoomEnv, EnvInputError, STEP_TICS, buttons_from_names, recorded_start,  # noqa: E402
                            world_config)
 
 FAST = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)

@@ -52,8 +52,8 @@ def ran(bad_files):
     """Every entry point's bad-input run (in one interpreter), by name."""
     b = bad_files
     return run_as_main({
-        "build_sample": ("magvit2.build_sample", ["--train_maps", "MAP01", UNKNOWN_MAP]),
-        "sample_world": ("data.sample_world", ["--output_dir", b / "sample_world_out", "--val_maps", "E9M9"]),
+        "build_sample": ("sample_world.build", ["--train_maps", "MAP01", UNKNOWN_MAP]),
+        "sample_world": ("sample_world.render", ["--output_dir", b / "sample_world_out", "--val_maps", "E9M9"]),
         "visualize": ("visualize.py", ["--token_dir", b / "missing"]),
         "lam_train": ("lam.train", ["--train_data", b / "missing.npz"]),
         "lam_label": ("lam.label", ["--lam_dir", b / "empty_dir", "--frames", "x.npz", "--token_dir", "tokens"]),
@@ -65,7 +65,7 @@ def ran(bad_files):
                                                     b / "lpips.safetensors"]),
         "verify": ("data.verify", [b / "missing"]),
         "play": ("play.py", ["--checkpoint_dir", b / "empty_dir", "--data_dir", b / "empty_dir"]),
-        "baselines": ("genie.baselines", ["--train_data_dir", b / "empty_dir", "--val_data_dir", b / "empty_dir"]),
+        "baselines": ("evaluation.baselines", ["--train_data_dir", b / "empty_dir", "--val_data_dir", b / "empty_dir"]),
         "bench_dataset_index.py": (BENCHMARKS / "bench_dataset_index.py", ["--num_frames", "-5"]),
         "bench_tokenizer_train.py": (BENCHMARKS / "bench_tokenizer_train.py", ["--ch_mult", "1", "0"]),
     })
@@ -125,7 +125,7 @@ def test_verify_names_a_missing_directory(ran, bad_files):
 
 
 def test_baselines_name_a_directory_that_is_no_dataset(ran, bad_files):
-    line = error_line(ran["baselines"], "genie.baselines")
+    line = error_line(ran["baselines"], "evaluation.baselines")
     assert f"{bad_files / 'empty_dir' / 'metadata.json'}: file not found" in line
 
 
@@ -186,7 +186,7 @@ def test_script_errors_are_the_shared_classes():
 
 def test_build_sample_accepts_every_map_the_shipped_worlds_use():
     """The map check is the parser's: the default world and build.sh's sets of unseen maps must pass it."""
-    from data import sample_world
+    from sample_world import render as sample_world
     from magvit2 import build_sample
 
     args = build_sample.parse_args([])

@@ -14,15 +14,15 @@ from torch.utils.data import DataLoader
 
 from common.images import psnr
 from data import RawTokenDataset, read_metadata, write_token_dataset
-import genie.evaluation
+import evaluation.protocols
 from common.cli import run_main
 from tests.cli_runner import run_as_main
 from evaluate import main
 from genie import GenieConfig, STMaskGIT
-from genie.evaluation import (FrameScorer, example_indices, rollout_result, score_rollout, teacher_forced_evaluate,
+from evaluation.protocols import (FrameScorer, example_indices, rollout_result, score_rollout, teacher_forced_evaluate,
                               token_statistics)
-from genie.metrics import (RunningMean, factored_argmax_correct, factored_cross_entropy, images_to_unit_range,
-                           token_accuracy)
+from evaluation.metrics import RunningMean, images_to_unit_range, token_accuracy
+from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import teacher_forced
 
 REPO = Path(__file__).resolve().parents[1]
@@ -388,7 +388,7 @@ def test_rollout_protocol_json_line(tiny, capsys):
     (["--num_prompt_frames", "3"], "--num_prompt_frames applies to --protocol rollout only"),
     (["--protocol", "rollout", "--num_prompt_frames", "3", "--save_outputs_dir", "out"],
      "does not apply to --protocol rollout"),
-    (["--protocol", "copy_ceiling"], "invalid choice: 'copy_ceiling'"),  # python -m genie.diagnostics copy_ceiling
+    (["--protocol", "copy_ceiling"], "invalid choice: 'copy_ceiling'"),  # python -m evaluation.diagnostics copy_ceiling
     (["--per_window_out", "windows.jsonl"], "unrecognized arguments: --per_window_out"),  # diagnostics per_window
     (["--withhold_actions"], "unrecognized arguments: --withhold_actions"),  # diagnostics withheld_actions
     (["--greedy_tokens", "factored"], "invalid choice: 'factored'"),
@@ -424,8 +424,8 @@ def test_greedy_tokens_sets_the_models_decoding(tiny, capsys, monkeypatch, choic
 
 def test_stall_ratio_reaches_the_rollouts_and_the_json_line(tiny, capsys, monkeypatch):
     seen = []
-    real = genie.evaluation.generate
-    monkeypatch.setattr(genie.evaluation, "generate",
+    real = evaluation.protocols.generate
+    monkeypatch.setattr(evaluation.protocols, "generate",
                         lambda *a, **kw: seen.append(kw["stall_ratio"]) or real(*a, **kw))
     assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3", "--max_examples",
                           "2", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips", "--stall_ratio", "1")) == 0

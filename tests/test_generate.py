@@ -1,4 +1,4 @@
-"""genie/generate.py: output layout (prompt | predictions | ground truth), modes, determinism, clear errors."""
+"""generate.py: output layout (prompt | predictions | ground truth), modes, determinism, clear errors."""
 import json
 import re
 
@@ -8,7 +8,7 @@ import torch
 
 from common.cli import run_main
 from data import RawTokenDataset, read_metadata
-import genie.generate as generate  # the script module (genie.generate, the function, is genie.inference.generate)
+import generate as generate  # the script module (generate, the function, is genie.inference.generate_frames)
 from genie import GenieConfig, STMaskGIT
 from tests.test_train import TINY, make_token_dataset
 
@@ -33,7 +33,7 @@ def run(setup, out, *extra):
 
 
 def run_script(argv, capsys) -> str:
-    """genie/generate.py's main as the script runs it, for bad input: status 1 and one error line, returned."""
+    """generate.py's main as the script runs it, for bad input: status 1 and one error line, returned."""
     assert run_main("generate.py", generate.main, argv) == 1
     err = capsys.readouterr().err
     assert "Traceback" not in err

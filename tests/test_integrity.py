@@ -21,7 +21,7 @@ from common.train_state import list_checkpoints, load_training_checkpoint, save_
 from data import RawTokenDataset, TokenDatasetError, TokenDatasetWriter
 from data import verify as data_verify
 from genie.config import GenieConfig
-from genie.masking import MaskGITBatch
+from training.masking import MaskGITBatch
 from genie.model import STMaskGIT
 from lam.model import LAM, LAMConfig
 from magvit2 import VQModel

@@ -30,9 +30,9 @@ def test_no_package_imports_a_higher_layer(package):
         assert not higher, f"{path.relative_to(REPO)} imports {sorted(higher)}"
 
 
-SCRIPTS = ["train.py", "evaluate.py", "visualize.py", "genie/generate.py", "genie/baselines.py", "magvit2/train.py",
-           "magvit2/tokenize_frames.py", "magvit2/lpips_weights.py", "magvit2/build_sample.py", "data/sample_world.py",
-           "lam/train.py", "lam/label.py", "genie/diagnostics.py", "data/verify.py"]
+SCRIPTS = ["train.py", "evaluate.py", "visualize.py", "generate.py", "evaluation/baselines.py", "magvit2/train.py",
+           "magvit2/tokenize_frames.py", "magvit2/lpips_weights.py", "sample_world/build.py", "sample_world/render.py",
+           "lam/train.py", "lam/label.py", "evaluation/diagnostics.py", "data/verify.py"]
 
 
 def test_every_script_answers_help():
@@ -68,7 +68,7 @@ def test_no_world_trains_on_a_scored_map():
     """The default world's training maps, which run_gpu.sh's default spells out, share none with the validation
     split's held-out map or with any set of unseen maps that build.sh --unseen makes: those sets exist to score maps
     no run trained on. Validation's other walks are on training maps."""
-    from data.sample_world import HELDOUT_MAPS, TRAIN_MAPS, VAL_MAPS
+    from sample_world.render import HELDOUT_MAPS, TRAIN_MAPS, VAL_MAPS
 
     gpu_maps = re.search(r'^GPU_TRAIN_MAPS="([^"]+)"$', (REPO / "run_gpu.sh").read_text(), re.M).group(1).split()
     build = (REPO / "build.sh").read_text()
@@ -89,6 +89,6 @@ def test_the_network_loads_without_the_data_side_or_inference():
     loaded = set(subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True,
                                 env={**os.environ, "PYTHONPATH": str(REPO)}).stdout.split())
     assert "genie.model" in loaded and "genie.transformer" in loaded
-    for module in ("data", "magvit2", "genie.masking", "genie.action_data", "genie.sampling", "genie.inference",
+    for module in ("data", "magvit2", "training.masking", "training.action_streams", "genie.sampling", "genie.inference",
                    "genie.reference"):
         assert module not in loaded, f"importing genie.model loads {module}"

@@ -260,7 +260,7 @@ def test_save_pretrained_round_trip(tmp_path):
 
 def test_shipped_tokenizer_tokens_do_not_depend_on_the_batch():
     """build_sample encodes in batches of 8 for speed: the tokens must be those of the former batches of 256."""
-    from magvit2.build_sample import SHIPPED_TOKENIZER, resolve_tokenizer
+    from sample_world.build import SHIPPED_TOKENIZER, resolve_tokenizer
 
     model = VQModel.from_checkpoint(resolve_tokenizer(SHIPPED_TOKENIZER)).eval()
     rng = np.random.default_rng(0)

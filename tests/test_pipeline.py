@@ -33,7 +33,7 @@ def saved_training_state(output_dir: Path) -> dict:
 def test_main_job_pipeline_tiny(tmp_path):
     tokenizer = tiny_tokenizer(tmp_path / "tokenizer")
     sample = tmp_path / "sample"
-    build = [sys.executable, "-m", "magvit2.build_sample", "--output_dir", str(sample), "--train_maps", "MAP01",
+    build = [sys.executable, "-m", "sample_world.build", "--output_dir", str(sample), "--train_maps", "MAP01",
              "--val_maps", "MAP18", "--train_episodes", "1", "--episode_len", "240", "--tokenizer_ckpt", str(tokenizer)]
     subprocess.run(build, cwd=REPO, check=True, timeout=300)
     train = RawTokenDataset(sample / "train", window_size=16, stride=15)

@@ -1,4 +1,4 @@
-"""play.py (genie/play_server.py): the HTTP API the page uses (frames as PNG, the real world beside the model, one-line 400s on bad input)
+"""play.py (play_server/app.py): the HTTP API the page uses (frames as PNG, the real world beside the model, one-line 400s on bad input)
 and the page itself in a real headless browser (Debian's chromium through selenium)."""
 import io
 import shutil
@@ -14,9 +14,10 @@ pytest.importorskip("vizdoom")
 from fastapi.testclient import TestClient  # noqa: E402
 
 from data import sample_world as sw  # noqa: E402
-from genie.world_env import WorldModelEnv  # noqa: E402
-from magvit2.build_sample import tokenize_split  # noqa: E402
-from genie.play_server import PlaySession, build_app, real_world_for  # noqa: E402
+from envs.world_model import WorldModelEnv  # noqa: E402
+from sample_world.build import tokenize_split  # noqa: E402
+from envs.pairing import real_world_for  # noqa: E402
+from play_server.app import PlaySession, build_app  # noqa: E402
 from tests.play_fixtures import tiny_model, tiny_tokenizer  # noqa: E402
 
 

@@ -1,13 +1,13 @@
-"""Policies (genie/policies.py), the motion estimator's dead reckoning (genie/motion_estimator.py) and the policy
-protocol (genie/policy_eval.py, ./evaluate.py --protocol policies) on hand-made cases."""
+"""Policies (sample_world/policies.py), the motion estimator's dead reckoning (sample_world/motion_estimator.py) and the policy
+protocol (evaluation/policy_ranking.py, ./evaluate.py --protocol policies) on hand-made cases."""
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from genie.motion_estimator import MotionNet, dead_reckon, distance_from_start, pose_motion, step_pairs
-from genie.policies import (MACROS, PolicyError, RandomButtons, Shuttle, check_action, load_policies, load_policy,
+from sample_world.motion_estimator import MotionNet, dead_reckon, distance_from_start, pose_motion, step_pairs
+from sample_world.policies import (MACROS, PolicyError, RandomButtons, Shuttle, check_action, load_policies, load_policy,
                             macro_targets)
 
 
@@ -82,7 +82,7 @@ vizdoom = pytest.importorskip("vizdoom")
 @pytest.fixture(scope="module")
 def worlds():
     from data import sample_world as sw
-    from data.doom_env import DoomEnv
+    from envs.doom import DoomEnv
 
     cfg = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)
     envs = [DoomEnv(maps=["MAP01"], cfg=cfg) for _ in range(2)]
@@ -98,7 +98,7 @@ class IgnoresActions:
         self.env = env
 
     def begin(self, start):
-        from genie.policy_eval import replay_start
+        from evaluation.policy_ranking import replay_start
 
         replay_start(self.env, start.options, len(start.prompt_frames), start.seed)
         return self.env.frame
@@ -109,13 +109,13 @@ class IgnoresActions:
 
 
 def suite():
-    from genie.policies import AlwaysForward, Spin
+    from sample_world.policies import AlwaysForward, Spin
 
     return {"spin": Spin(), "forward": AlwaysForward(), "shuttle": Shuttle(), "random": RandomButtons()}
 
 
 def test_the_real_world_as_the_model_reproduces_the_real_frames_ranking(worlds):
-    from genie.policy_eval import RealWorld, evaluate_policies, make_starts
+    from evaluation.policy_ranking import RealWorld, evaluate_policies, make_starts
 
     real, twin = worlds
     torch.manual_seed(0)
@@ -131,7 +131,7 @@ def test_the_real_world_as_the_model_reproduces_the_real_frames_ranking(worlds):
 
 
 def test_a_model_that_ignores_actions_ranks_no_better_than_chance(worlds):
-    from genie.policy_eval import evaluate_policies, make_starts
+    from evaluation.policy_ranking import evaluate_policies, make_starts
 
     real, twin = worlds
     starts = make_starts(real, ["MAP01"], 2, 3, seed=2, latest_frame=300)
@@ -146,7 +146,7 @@ def test_evaluate_policies_protocol_end_to_end(tmp_path, capsys):
     from common.cli import run_main
     from data import sample_world as sw
     from evaluate import main
-    from genie.motion_estimator import train_motion_estimator
+    from sample_world.motion_estimator import train_motion_estimator
     from tests.play_fixtures import tiny_model, tiny_tokenizer
 
     cfg = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)

@@ -1,8 +1,8 @@
-"""genie/ranking.py against values computed by hand (and scipy's definitions, where they agree)."""
+"""evaluation/ranking.py against values computed by hand (and scipy's definitions, where they agree)."""
 import numpy as np
 import pytest
 
-from genie.ranking import average_ranks, kendall, pairwise_accuracy, regret_at_1, spearman
+from evaluation.ranking import average_ranks, kendall, pairwise_accuracy, regret_at_1, spearman
 
 
 def test_perfect_reversed_and_hand_computed_rankings():

@@ -4,7 +4,7 @@ import torch
 
 from genie import GenieConfig, STMaskGIT
 from genie.config import ConfigError
-from genie.inference import generate, teacher_forced
+from genie.inference import generate_frames, teacher_forced
 from genie.reference import generate_uncached, teacher_forced_uncached
 from genie.transformer import apply_rope, rope_tables
 from tests.test_cache import make_model

@@ -103,7 +103,7 @@ def test_tokenize_frames_in_memory(tmp_path, tokenizer_dir):
 def test_build_sample_tokenizes_a_split_once(tmp_path, tokenizer_dir, capsys):
     """build_sample's tokenize_split: the split's frames become its tokens, with segments and actions; a second build
     is a no-op, and new raw frames are tokenized again."""
-    from magvit2.build_sample import tokenize_split
+    from sample_world.build import tokenize_split
 
     n = 6
     raw = tmp_path / "train.npz"

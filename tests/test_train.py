@@ -12,7 +12,7 @@ import train
 from common.schedules import LR_SCHEDULES, lr_multiplier
 from data import RawTokenDataset, write_token_dataset
 from genie import GenieConfig, STMaskGIT
-from genie.masking import get_maskgit_collator
+from training.masking import get_maskgit_collator
 from genie.reference import full_logits_loss
 from common.ema import WeightAverage
 from common.train_state import (COMPLETE_MARKER, EMA_DIR, ResumableBatchSampler, list_checkpoints,

@@ -1,4 +1,4 @@
-"""The world model as a Gymnasium environment (genie/world_env.py): the Gymnasium contract, starts, the sliding
+"""The world model as a Gymnasium environment (envs/world_model.py): the Gymnasium contract, starts, the sliding
 context and its cached step against recomputing the window, and clear errors."""
 import numpy as np
 import pytest
@@ -8,7 +8,7 @@ from gymnasium.utils.env_checker import check_env
 from data import RawTokenDataset
 from genie.inference import next_frame
 from genie.reference import next_frame_recomputed
-from genie.world_env import WorldEnvError, WorldModelEnv
+from envs.world_model import WorldEnvError, WorldModelEnv
 from tests.play_fixtures import T, tiny_dataset, tiny_model, tiny_tokenizer
 
 

@@ -1,12 +1,12 @@
-"""Diagnostics of a dynamics model's futures, scored like evaluate.py's protocols (genie/evaluation.py): one
-subcommand each (`python -m genie.diagnostics SUBCOMMAND --help` explains it and its flags), one JSON line on stdout
+"""Diagnostics of a dynamics model's futures, scored like evaluate.py's protocols (evaluation/protocols.py): one
+subcommand each (`python -m evaluation.diagnostics SUBCOMMAND --help` explains it and its flags), one JSON line on stdout
 (the last line; progress goes to stderr).
 
-    python -m genie.diagnostics copy_ceiling --ceiling_block 8 --max_examples 48 --spread_examples
-    python -m genie.diagnostics per_window --per_window_out windows.jsonl --max_examples 48 --spread_examples
-    python -m genie.diagnostics breakdown windows.jsonl --val_data_dir data/sample/val --column 1
-    python -m genie.diagnostics withheld_actions --protocol rollout --max_examples 48
-    python -m genie.diagnostics control --val_data_dir data/unseen/val --num_starts 24
+    python -m evaluation.diagnostics copy_ceiling --ceiling_block 8 --max_examples 48 --spread_examples
+    python -m evaluation.diagnostics per_window --per_window_out windows.jsonl --max_examples 48 --spread_examples
+    python -m evaluation.diagnostics breakdown windows.jsonl --val_data_dir data/sample/val --column 1
+    python -m evaluation.diagnostics withheld_actions --protocol rollout --max_examples 48
+    python -m evaluation.diagnostics control --val_data_dir data/unseen/val --num_starts 24
 """
 import argparse
 import functools
@@ -19,21 +19,21 @@ from tqdm import tqdm
 
 from common.cli import run_main, setup_logging
 from common.errors import DataMismatchError
-from genie.copy_ceiling import ceiling_rollout
-from genie.evaluation import (EvaluationError, add_per_window_arg, add_prompt_arg, add_protocol_args,
+from evaluation.copy_ceiling import ceiling_rollout
+from evaluation.protocols import (EvaluationError, add_per_window_arg, add_prompt_arg, add_protocol_args,
                               add_save_outputs_arg, add_window_args, add_rollout_scores, check_per_window_arg,
                               check_prompt_arg, check_protocol_args, check_window_args, frame_scorer, load_model,
                               model_windows, rollout_evaluate, rollout_result, start_process, teacher_forced_run,
                               windows_dataset, windows_loader, write_per_window)
-from genie.rollout_breakdown import breakdown, describe
+from evaluation.rollout_breakdown import breakdown, describe
 
-logger = logging.getLogger("genie.diagnostics")
+logger = logging.getLogger("evaluation.diagnostics")
 
-PROG = "python -m genie.diagnostics"
+PROG = "python -m evaluation.diagnostics"
 
 COPY_CEILING_DOC = """\
 The rollout protocol's windows, prompt and scores, with the generated frames replaced by the best futures made
-only of whole-token copies, chosen knowing the true frames (genie/copy_ceiling.py); no checkpoint is read. Each
+only of whole-token copies, chosen knowing the true frames (evaluation/copy_ceiling.py); no checkpoint is read. Each
 token is copied from a neighbour within --ceiling_radius positions in the ceiling's own frame before, one
 displacement per --ceiling_block x --ceiling_block tile of positions: how good the previous-frame pointer's copies
 could be. The JSON line has the rollout protocol's keys (protocol "copy_ceiling"; rollout_* are the ceiling's
@@ -49,7 +49,7 @@ BREAKDOWN_DOC = """\
 A --per_window_out file's windows cut into --bins groups of equal size by one number: the mean absolute value of
 one action column over the window's generated frames (each row the mean over its window step; the sample world's
 measured_motion column 1 is the turn rate, column 0 the forward speed, as measured). Each group's futures are compared with
-holding the last prompt frame per horizon (genie/rollout_breakdown.py): a mean over all windows can hide a group of
+holding the last prompt frame per horizon (evaluation/rollout_breakdown.py): a mean over all windows can hide a group of
 windows where the futures lose to holding; this shows which motion it is. One readable line per group goes to
 stderr; the JSON line is {"stream", "column", "groups": [{"low", "high", "num_windows", "psnr_gain" (dB per
 horizon), "psnr_gain_mean", "lpips_rollout", "lpips_hold" (null when the file has no LPIPS)}, ...]}."""
@@ -66,7 +66,7 @@ metrics (delta_psnr, the probe), plus "actions_withheld": true."""
 def copy_ceiling_evaluate(loader, args: argparse.Namespace, device: torch.device, scorer, num_bits: int,
                           per_window=None) -> dict:
     """The copy ceiling's JSON line over `loader` (module doc): the rollout protocol's scores of
-    genie.copy_ceiling.ceiling_rollout's frames (each window's own appended to `per_window` when a list)."""
+    evaluation.copy_ceiling.ceiling_rollout's frames (each window's own appended to `per_window` when a list)."""
     P, with_lpips = args.num_prompt_frames, not args.skip_lpips
     sums, num_examples, exact, num_tokens = {}, 0, 0, 0
     for batch in _progress(loader, "copy ceiling"):
@@ -235,10 +235,10 @@ def check_withheld_actions(parser, args: argparse.Namespace) -> None:
 
 # ------------------------------------------------------------------ control
 def run_control(args: argparse.Namespace) -> dict:
-    from genie.control_check import control_check
-    from genie.evaluation import example_indices
-    from genie.play_server import real_world_for
-    from genie.world_env import WorldModelEnv
+    from evaluation.control_check import control_check
+    from evaluation.protocols import example_indices
+    from envs.pairing import real_world_for
+    from envs.world_model import WorldModelEnv
 
     start_process(args)
     env = WorldModelEnv.from_checkpoint(args.checkpoint_dir, args.val_data_dir, args.tokenizer_ckpt,
@@ -267,7 +267,7 @@ CONTROL_DOC = """Does the model obey its controls? From --num_starts windows spr
 holds TURN_LEFT, TURN_RIGHT and MOVE_FORWARD for --steps steps each, from the same start and sampler seed, and the
 horizontal shift between consecutive frames is measured by phase correlation (pixels per step; positive: the image
 moves right, as when the view turns left). The same starts and buttons are played in the real world beside when the
-data is a sample world's split (genie/control_check.py). The JSON line has "model" and "real" summaries
+data is a sample world's split (evaluation/control_check.py). The JSON line has "model" and "real" summaries
 (mean_shift per action, opposite_turns_share, left_right_share, forward_less_sideways_share,
 forward_less_sideways_mean) and "per_start"."""
 
@@ -338,4 +338,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(run_main("genie.diagnostics", main))
+    sys.exit(run_main("evaluation.diagnostics", main))

@@ -1,4 +1,4 @@
-"""The challenge evaluator's protocols and scores, shared by evaluate.py (the two protocols) and genie/diagnostics.py
+"""The challenge evaluator's protocols and scores, shared by evaluate.py (the two protocols) and evaluation/diagnostics.py
 (the same scores of other futures: withheld actions, per-window lines, the copy ceiling).
 
 Teacher-forced protocol (`teacher_forced_evaluate`): each window's frames 1..T-1 predicted with MaskGIT from their
@@ -28,16 +28,17 @@ from common.errors import DataMismatchError, InputError, writing
 from common.files import atomic_file
 from common.images import psnr, ssim
 from data import RawTokenDataset, write_token_dataset
-from genie.action_data import prepare_action_streams, window_actions
+from training.action_streams import prepare_action_streams, window_actions
 from genie.config import check_dataset_matches
 from genie.decoding import add_decoding_args, apply_decoding, check_decoding_args, decoding_settings, sampler_kwargs
-from genie.inference import changed_share, generate, teacher_forced
-from genie.metrics import RunningMean, factored_cross_entropy, images_to_unit_range
+from genie.inference import changed_share, generate_frames, teacher_forced
+from evaluation.metrics import RunningMean, images_to_unit_range
+from genie.metrics import factored_cross_entropy
 from genie.model import STMaskGIT
 from magvit2 import VQModel
 from magvit2.lpips import LPIPS
 
-logger = logging.getLogger("genie.evaluation")
+logger = logging.getLogger("evaluation.protocols")
 
 DEFAULT_VAL_DIR = "data/val_v1.1"
 SAMPLE_VAL_DIR = "data/sample/val"
@@ -133,7 +134,7 @@ def add_per_window_arg(parser, applies: str = "", required: bool = False) -> Non
                              f"first_frame (its first frame in video.bin), segment_id (when the dataset has "
                              f"segment_ids.bin), and every per-horizon list of the summary (rollout_psnr, hold_psnr, "
                              f"..., true_repeated) for that window; the summary's lists are their means. "
-                             f"`python -m genie.diagnostics breakdown` groups them by the walker's motion.")
+                             f"`python -m evaluation.diagnostics breakdown` groups them by the walker's motion.")
 
 
 def check_window_args(parser, args: argparse.Namespace) -> None:
@@ -519,7 +520,7 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
         _synchronize(device)
         start = time.perf_counter()
         with _autocast(device):
-            tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, **sampler_kwargs(args), generator=generator,
+            tokens_BTHW, _ = generate_frames(model, x_BTHW[:, :P], T - P, **sampler_kwargs(args), generator=generator,
                                       actions=actions_BTD, latent_actions=latent_BT, control=True,
                                       stall_ratio=args.stall_ratio)
         _synchronize(device)
@@ -566,7 +567,7 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
             random_BT[:, P:] = torch.randint(0, K, (B, T - P), generator=seed_random_actions).to(device)
             for played_BT, generator, mean in zip((latent_BT, random_BT), seed_generators, seed_psnrs):
                 with _autocast(device):
-                    tokens_BTHW, _ = generate(model, x_BTHW[:, :P], T - P, generator=generator,
+                    tokens_BTHW, _ = generate_frames(model, x_BTHW[:, :P], T - P, generator=generator,
                                               actions=actions_BTD, latent_actions=played_BT, **kwargs)
                 frame_psnr = psnr(decode_frames(scorer, tokens_BTHW[:, P:].flatten(0, 1)), truth_NHW3,
                                   value_range=(0.0, 255.0))

@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from data.sample_world import STEP_TICS
+from sample_world.render import STEP_TICS
 
 
 class MotionNet(nn.Module):

@@ -6,7 +6,7 @@ returns the frame the model imagines after it.
     frame, reward, terminated, truncated, info = env.step(np.array([0, 0, 1, 0, 0], dtype=np.int8))  # turn left
 
 Action: for a model conditioned on the `buttons` stream alone, MultiBinary(buttons), the buttons held for the next
-window step (data.sample_world.BUTTON_NAMES order); for one with other real action streams, a Box row of its
+window step (sample_world.render.BUTTON_NAMES order); for one with other real action streams, a Box row of its
 action_dim values; for a latent-action model, Discrete(num_latent_actions). Observation: the new frame decoded by
 the tokenizer, (H, W, 3) uint8; info["tokens"] holds its (h, w) token ids. Reward 0, never terminated or
 truncated (a task sets its own; gymnasium's TimeLimit bounds an episode).
@@ -29,11 +29,11 @@ from gymnasium import spaces
 
 from common.errors import InputError
 from data import RawTokenDataset
-from data.sample_world import BUTTON_NAMES, HZ, STEP_TICS
-from genie.action_data import LATENT_ACTION_NAME, prepare_action_streams
+from sample_world.render import BUTTON_NAMES, HZ, STEP_TICS
+from training.action_streams import LATENT_ACTION_NAME, prepare_action_streams
 from genie.checkpoint import resolve_checkpoint_dir
 from genie.config import check_dataset_matches
-from genie.decoding import DEFAULT_MASKGIT_STEPS
+from genie.decoding import DecodingConfig
 from genie.inference import next_frame
 from genie.model import STMaskGIT
 
@@ -46,23 +46,22 @@ class WorldModelEnv(gym.Env):
 
     starts: a token dataset whose windows (T frames at stride 15) the environment can start from, or None
     (starts from given frames only). prompt_frames: frames of a window given as the start (default: the config's
-    num_prompt_frames). temperature, maskgit_steps: the sampler of each new frame (decoding settings such as
-    copy_bias are set on the model). seed: of the sampler, when reset() gets none.
+    num_prompt_frames). decoding: how each new frame is sampled (default: the model's own, `model.decoding`, which
+    from_checkpoint reads from the checkpoint's decoding.json; its maskgit_steps and temperature are used, the
+    MaskGIT steps unmasking at random). seed: of the sampler, when reset() gets none.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": HZ / STEP_TICS}
 
     def __init__(self, model: STMaskGIT, tokenizer, starts: Optional[RawTokenDataset] = None, *,
-                 prompt_frames: Optional[int] = None, temperature: float = 1.0,
-                 maskgit_steps: int = DEFAULT_MASKGIT_STEPS, button_names: Optional[Sequence[str]] = None,
-                 render_mode: Optional[str] = None):
+                 prompt_frames: Optional[int] = None, decoding: Optional[DecodingConfig] = None,
+                 button_names: Optional[Sequence[str]] = None, render_mode: Optional[str] = None):
         config = model.config
         if render_mode not in (None, "rgb_array"):
             raise WorldEnvError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        if temperature < 0 or maskgit_steps < 1:
-            raise WorldEnvError(f"need temperature >= 0 and maskgit_steps >= 1, got {temperature}, {maskgit_steps}")
+        if decoding is not None:
+            model.set_decoding(decoding)
         self.model, self.tokenizer, self.render_mode = model.eval(), tokenizer.eval(), render_mode
-        self.temperature, self.maskgit_steps = float(temperature), int(maskgit_steps)
         self.T = config.T
         self.prompt_frames = int(prompt_frames or config.num_prompt_frames or 1)
         if not 1 <= self.prompt_frames <= self.T - 1:
@@ -96,18 +95,15 @@ class WorldModelEnv(gym.Env):
         self._tokens, self._frame, self._cache = None, None, None
 
     @classmethod
-    def from_checkpoint(cls, checkpoint_dir, data_dir=None, tokenizer_ckpt=None, device="cpu", copy_bias: float = 2.0,
-                        greedy_tokens: str = "best_neighbour", **kwargs) -> "WorldModelEnv":
-        """Load a dynamics checkpoint (a directory or a hub id), the token dataset of its starts (data_dir, or
-        None) and the tokenizer (tokenizer_ckpt, else the one the dataset's metadata names, else the sample world's).
-        copy_bias / greedy_tokens: the decoding of a model with a copy head (the main command's defaults)."""
-        from magvit2.build_sample import SHIPPED_TOKENIZER  # the tokenizer loads only where frames are decoded
+    def from_checkpoint(cls, checkpoint_dir, data_dir=None, tokenizer_ckpt=None, device="cpu",
+                        **kwargs) -> "WorldModelEnv":
+        """Load a dynamics checkpoint (a directory or a hub id; it decodes as its decoding.json says unless
+        `decoding` is given), the token dataset of its starts (data_dir, or None) and the tokenizer (tokenizer_ckpt,
+        else the one the dataset's metadata names, else the sample world's)."""
+        from sample_world.build import SHIPPED_TOKENIZER  # the tokenizer loads only where frames are decoded
         from magvit2.model import VQModel
 
         model = STMaskGIT.from_pretrained(resolve_checkpoint_dir(checkpoint_dir)).to(device)
-        if model.copy_head is not None:
-            model.set_copy_bias(copy_bias)
-            model.set_greedy_tokens(greedy_tokens)
         starts = None
         if data_dir is not None:
             starts = RawTokenDataset(data_dir, window_size=model.config.T, stride=STEP_TICS, filter_overlaps=True)
@@ -245,8 +241,9 @@ class WorldModelEnv(gym.Env):
     def step(self, action):
         tokens, actions, latent = self.step_inputs(action)
         # a cache that does not hold exactly this context (after a slide: none is kept) is recomputed
-        new_frame, self._cache = next_frame(self.model, tokens, actions, latent, self._cache, self.maskgit_steps,
-                                            self.temperature, self._generator)
+        decoding = self.model.decoding
+        new_frame, self._cache = next_frame(self.model, tokens, actions, latent, self._cache, decoding.maskgit_steps,
+                                            decoding.temperature, self._generator)
         self._tokens = torch.cat([tokens, new_frame[None]])
         self._actions = torch.cat([actions, torch.full_like(actions[:1], float("nan"))])
         self._latent = latent

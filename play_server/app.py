@@ -11,7 +11,6 @@ from typing import List, Optional, Union
 import numpy as np
 from PIL import Image
 
-from common.cli import resolve_device
 from common.errors import InputError
 
 PAGE = Path(__file__).resolve().parent / "static" / "play.html"
@@ -59,7 +58,7 @@ class PlaySession:
             frame, self.info = self.env.reset(seed=seed, options=options)
             self.step_seconds = []
             if self.real_env is not None and self.info["window"] is not None:
-                from data.doom_env import recorded_start
+                from envs.doom import recorded_start
 
                 start = recorded_start(self.raw_npz, self.env.window_start_frame(self.info["window"]))
                 self.real_frame, _ = self.real_env.reset(options=start)
@@ -69,7 +68,7 @@ class PlaySession:
         with self.lock:
             t0 = time.perf_counter()
             if self.env.buttons:  # else a latent action id, or a row of a model's other real action streams
-                from data.doom_env import buttons_from_names
+                from envs.doom import buttons_from_names
 
                 action = buttons_from_names(action, self.env.button_names)
             frame, _, _, _, self.info = self.env.step(action)
@@ -158,37 +157,21 @@ def build_app(session: PlaySession):
     return app
 
 
-def real_world_for(env, data_dir: Optional[str]):
-    """(DoomEnv, raw npz) of the sample world that data_dir was built from, or (None, reason) when there is none: a
-    model not driven by buttons, data not from the sample world, or no ViZDoom."""
-    if data_dir is None or not env.buttons:
-        return None, "the model is not driven by buttons" if data_dir else "no --data_dir"
-    data_dir = Path(data_dir)
-    raw_npz = data_dir.parent / "raw" / f"{data_dir.name}.npz"
-    if not raw_npz.is_file():
-        return None, f"{raw_npz} not found (the data is not a sample world)"
-    try:
-        from data.doom_env import DoomEnv, world_config
-    except ImportError as e:
-        return None, f"cannot import the real world ({e})"
-    cfg = world_config(raw_npz.parent)
-    with np.load(raw_npz) as npz:
-        maps = sorted(set(str(m) for m in npz["maps"]))
-    return DoomEnv(maps=maps, cfg=cfg), raw_npz
+def make_session(checkpoint_dir, data_dir: Optional[str] = None, tokenizer_ckpt: Optional[str] = None,
+                 device: str = "cpu", decoding=None, prompt_frames: Optional[int] = None, real_world: bool = True,
+                 seed: int = 0) -> PlaySession:
+    """A session of the model in checkpoint_dir (decoding as its checkpoint says unless `decoding`, a
+    genie.decoding.DecodingConfig, is given), starting from data_dir's windows, with the real sample world beside it
+    when `real_world` and there is one; reset to its first start (drawn with `seed`)."""
+    from envs.pairing import real_world_for
+    from envs.world_model import WorldModelEnv
 
-
-def make_session(args) -> PlaySession:
-    """The session of play.py's arguments (checkpoint_dir, data_dir, tokenizer_ckpt, device, copy_bias,
-    temperature, maskgit_steps, prompt_frames, no_real_world, seed), reset to its first start."""
-    from genie.world_env import WorldModelEnv
-
-    device = resolve_device(args.device)
-    env = WorldModelEnv.from_checkpoint(args.checkpoint_dir, args.data_dir, args.tokenizer_ckpt, device=device,
-                                        copy_bias=args.copy_bias, temperature=args.temperature,
-                                        maskgit_steps=args.maskgit_steps, prompt_frames=args.prompt_frames)
-    real_env, raw_npz = (None, "--no_real_world") if args.no_real_world else real_world_for(env, args.data_dir)
+    env = WorldModelEnv.from_checkpoint(checkpoint_dir, data_dir, tokenizer_ckpt, device=device, decoding=decoding,
+                                        prompt_frames=prompt_frames)
+    real_env, raw_npz = real_world_for(env, data_dir) if real_world else (None, "--no_real_world")
     if real_env is None:
         logger.info("no real world beside the model: %s", raw_npz)
+    logger.info("decoding: %s", env.model.decoding.to_dict())
     session = PlaySession(env, real_env, raw_npz if real_env is not None else None)
-    session.reset(seed=args.seed)
+    session.reset(seed=seed)
     return session

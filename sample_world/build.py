@@ -1,8 +1,8 @@
 """Build the embedded sample world: first-person frames + actions from ViZDoom, tokenized into the 1X layout.
 
-    python -m magvit2.build_sample --output_dir data/sample
+    python -m sample_world.build --output_dir data/sample
 
-1. `data.sample_world` renders train/val episodes (held-out episodes and maps for val) into output_dir/raw/*.npz;
+1. `sample_world.render` renders train/val episodes (held-out episodes and maps for val) into output_dir/raw/*.npz;
 2. the small MAGVIT2 tokenizer shipped in magvit2/pretrained/sample_world_64 (or one trained here with
    --train_tokenizer, using exactly the recipe that produced the shipped weights) encodes 64x64 frames to 16x16 tokens;
 3. the tokens, segment ids and actions are written to output_dir/train and output_dir/val (1X layout, with actions/).
@@ -20,7 +20,7 @@ from pathlib import Path
 from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_cpu_settings, finite_float,
                         non_negative_int, positive_int, resolve_device, run_main)
 from common.errors import TrainingError
-from data.sample_world import MAP_NAMES_HELP, TRAIN_MAPS, VAL_MAPS, WorldConfig, build_sample_world, map_name
+from sample_world.render import MAP_NAMES_HELP, TRAIN_MAPS, VAL_MAPS, WorldConfig, build_sample_world, map_name
 from magvit2.model import VQModel
 from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 
@@ -54,7 +54,7 @@ def resolve_tokenizer(path: str) -> Path:
         p = REPO_ROOT / p
     if not (p / "model.safetensors").exists():
         raise FileNotFoundError(f"tokenizer checkpoint {path} not found (expected config.json + model.safetensors); "
-                                f"train one with `python -m magvit2.build_sample --train_tokenizer`")
+                                f"train one with `python -m sample_world.build --train_tokenizer`")
     return p
 
 
@@ -156,4 +156,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(run_main("magvit2.build_sample", main))
+    sys.exit(run_main("sample_world.build", main))

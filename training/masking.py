@@ -8,7 +8,7 @@ from typing import Optional
 import torch
 from torch.utils.data import get_worker_info
 
-from genie.action_data import stack_streams, window_actions
+from training.action_streams import stack_streams, window_actions
 from genie.config import GenieConfig, TrainingRecipe
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.model import MaskGITBatch
@@ -94,7 +94,7 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
     """Return collate_fn(items) -> MaskGITBatch.
 
     items: RawTokenDataset items (tokens (T, H, W) int64, actions: name -> (T, k)); the batch's actions are the
-    streams the config's action inputs use (genie/action_data.py). labels are the clean tokens; input_ids are
+    streams the config's action inputs use (training/action_streams.py). labels are the clean tokens; input_ids are
     corrupted (`_corrupt`) and masked (config.mask_token_id where the model is to predict) by recipe.masking
     (recipe: genie.config.TrainingRecipe, None: the published one):
     "published": `_published_masks` (more corruption in later frames for some batches, then cosine-rate masks);

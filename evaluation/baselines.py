@@ -1,6 +1,6 @@
 """Copy-the-last-frame baselines for the challenge metrics (docs/formats.md §5).
 
-    python -m genie.baselines --train_data_dir data/sample/train --val_data_dir data/sample/val
+    python -m evaluation.baselines --train_data_dir data/sample/train --val_data_dir data/sample/val
 
 Token accuracy: predict frame t as a copy of ground-truth frame t-1. CE: the best smoothed copy, which puts
 probability p on each factor of the previous frame's token and spreads 1-p uniformly over the other V-1 values;
@@ -146,4 +146,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(run_main("genie.baselines", main))
+    sys.exit(run_main("evaluation.baselines", main))

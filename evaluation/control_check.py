@@ -1,12 +1,12 @@
-"""Does the world model obey its controls? (`python -m genie.diagnostics control`, genie/diagnostics.py)
+"""Does the world model obey its controls? (`python -m evaluation.diagnostics control`, evaluation/diagnostics.py)
 
-From each of N starts (windows spread over a token dataset), the world model environment (genie/world_env.py) holds
+From each of N starts (windows spread over a token dataset), the world model environment (envs/world_model.py) holds
 one button for K steps: TURN_LEFT, TURN_RIGHT, MOVE_FORWARD, each from the same start with the same sampler seed.
 Each pair of consecutive frames gives the horizontal shift of the image by phase correlation (`horizontal_shift`,
 in pixels, positive: the content moves right, as it does when the view turns left); a start's shift per action is
 the mean over its K steps. A model that obeys turns the image one way for TURN_LEFT and the other way for
 TURN_RIGHT, and moves it less sideways walking forward. When the dataset is a sample world's split, the same
-starts and buttons are played in the real world too (data/doom_env.py) as the reference.
+starts and buttons are played in the real world too (envs/doom.py) as the reference.
 """
 from typing import Dict, List, Optional, Sequence
 
@@ -65,7 +65,7 @@ def control_check(env, starts: Sequence[int], steps: int, seed: int, real_env=No
                   progress: bool = True) -> dict:
     """The check over dataset windows `starts` (module doc): {"num_starts", "steps", "model": summary, "real":
     summary or None, "per_start": [{"window", "model": {action: shift}, "real": ...}]}."""
-    from data.doom_env import buttons_from_names, recorded_start
+    from envs.doom import buttons_from_names, recorded_start
 
     actions = {a: buttons_from_names([a], env.button_names) for a in CONTROL_ACTIONS}
     model = {a: [] for a in CONTROL_ACTIONS}

@@ -1,9 +1,9 @@
 """The sample world itself as a Gymnasium environment: the walker's ViZDoom renderer and frame processing, driven
 by held buttons for one window step (15 tics, the stride between a token dataset window's frames) per `step`.
 
-Its actions mean what the world model's environment (genie/world_env.py) means by them, so a player or a policy
+Its actions mean what the world model's environment (envs/world_model.py) means by them, so a player or a policy
 that drives one drives the other. A start is a recorded walk's frame: the walk's episode seed replays the same
-warm-up and explorer tics (`data.sample_world.start_walk`), so `reset(options={"map": "MAP18", "episode_seed": s,
+warm-up and explorer tics (`sample_world.render.start_walk`), so `reset(options={"map": "MAP18", "episode_seed": s,
 "frame": k})` shows frame k of the walk recorded with seed s; `recorded_start` finds those three for a frame of a
 built world.
 
@@ -23,7 +23,7 @@ import numpy as np
 from gymnasium import spaces
 
 from common.errors import InputError
-from data.sample_world import (BUTTON_NAMES, HZ, SIDECAR_NAME, STEP_TICS, VAL_MAPS, WorldConfig, check_maps,
+from sample_world.render import (BUTTON_NAMES, HZ, SIDECAR_NAME, STEP_TICS, VAL_MAPS, WorldConfig, check_maps,
                                engine_action, gamma_table, make_game, preprocess_frame, start_walk)
 
 MAX_START_FRAME = 1500  # recorded tics a random start walks before it begins (a recorded walk's length)
@@ -56,7 +56,7 @@ def world_config(raw_dir) -> WorldConfig:
     """The WorldConfig a sample world was rendered with (raw_dir/sample_world.json)."""
     path = Path(raw_dir) / SIDECAR_NAME
     if not path.is_file():
-        raise EnvInputError(f"{path} not found: not the raw folder of a sample world (magvit2.build_sample writes it)")
+        raise EnvInputError(f"{path} not found: not the raw folder of a sample world (sample_world.build writes it)")
     return WorldConfig(**json.loads(path.read_text())["config"])
 
 

@@ -8,13 +8,13 @@ one that walks into a wall keeps pressing forward and stays put.
 Each start is a recorded walk of the explorer on one of the maps (episode seed and frame drawn from --seed): the
 real world replays it to the start frame, and its last P frames (15 tics apart) and the buttons held between them
 are the world model's prompt. From the same start every policy then drives, for K steps, closed loop:
-- the real world (data/doom_env.py): `real_return` from the engine's poses;
-- the world model (genie/world_env.py): the policy sees the model's frames, its buttons drive the model;
-  `model_return` is the motion estimator's (genie/motion_estimator.py: frames in, motion out, no actions read)
+- the real world (envs/doom.py): `real_return` from the engine's poses;
+- the world model (envs/world_model.py): the policy sees the model's frames, its buttons drive the model;
+  `model_return` is the motion estimator's (sample_world/motion_estimator.py: frames in, motion out, no actions read)
   dead reckoning of the model's frames;
 - `real_frames_return`: the same estimator on the real world's frames (what a perfect world model would reach);
 - `blind_return`: dead reckoning from the commanded buttons alone, as if there were no walls (no world model).
-The rankings of the policies by each estimate are scored against the ranking by `real_return` (genie/ranking.py).
+The rankings of the policies by each estimate are scored against the ranking by `real_return` (evaluation/ranking.py).
 A policy's random numbers and the model's sampler get the same seed in both worlds for a start (common random
 numbers).
 """
@@ -26,11 +26,11 @@ import numpy as np
 from tqdm import tqdm
 
 from common.errors import InputError
-from data import sample_world
-from data.sample_world import BUTTON_NAMES, HZ, STEP_TICS, driving_command
-from genie.motion_estimator import distance_from_start
-from genie.policies import check_action
-from genie.ranking import kendall, pairwise_accuracy, regret_at_1, spearman
+from sample_world import render as sample_world
+from sample_world.render import BUTTON_NAMES, HZ, STEP_TICS, driving_command
+from sample_world.motion_estimator import distance_from_start
+from sample_world.policies import check_action
+from evaluation.ranking import kendall, pairwise_accuracy, regret_at_1, spearman
 
 MAX_START_TRIES = 20
 
@@ -194,12 +194,12 @@ def ranking_lines(result: dict) -> List[str]:
 
 # ------------------------------------------------------------------ evaluate.py --protocol policies
 POLICIES_HELP = ("; policies: rank --policies by how far each gets from its start in --steps steps, inside the world "
-                 "model and in the real sample world, from the same starts (genie/policy_eval.py)")
+                 "model and in the real sample world, from the same starts (evaluation/policy_ranking.py)")
 DEFAULT_MAPS = ("MAP02", "MAP03", "MAP06", "MAP07")  # the first set of maps no run trains on
 
 
 def add_policy_args(parser) -> None:
-    from genie.policies import BUILTIN_POLICIES
+    from sample_world.policies import BUILTIN_POLICIES
 
     group = parser.add_argument_group("policies protocol", "Ranking policies inside the world model (--protocol "
                                                            "policies; the decoding flags set the model's sampler).")
@@ -229,8 +229,8 @@ def ensure_trained(args) -> None:
     """Train the cloned policies and the motion estimator into --policy_dir when they are not there."""
     from pathlib import Path
 
-    from genie.motion_estimator import train_motion_estimator
-    from genie.policies import BC_BUDGETS, train_bc_policies
+    from sample_world.motion_estimator import train_motion_estimator
+    from sample_world.policies import BC_BUDGETS, train_bc_policies
 
     policy_dir = Path(args.policy_dir)
     wanted_bc = any(p.partition("_random")[0] in BC_BUDGETS for p in args.policies if ":" not in p)
@@ -251,12 +251,12 @@ def run_policies(args) -> dict:
     import logging
     from pathlib import Path
 
-    from data.doom_env import DoomEnv, world_config
+    from envs.doom import DoomEnv, world_config
     from genie.decoding import decoding_settings
-    from genie.evaluation import start_process
-    from genie.motion_estimator import load_motion_estimator
-    from genie.policies import load_policies
-    from genie.world_env import WorldModelEnv
+    from evaluation.protocols import start_process
+    from sample_world.motion_estimator import load_motion_estimator
+    from sample_world.policies import load_policies
+    from envs.world_model import WorldModelEnv
 
     logger = logging.getLogger("evaluate")
     device = start_process(args)

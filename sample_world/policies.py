@@ -1,7 +1,7 @@
 """Policies that drive the sample world (or a world model of it) from what a camera sees.
 
 A policy is any object with `reset(seed)` (an episode starts) and `act(frame)`: the latest (64, 64, 3) uint8 RGB
-frame -> the list of buttons to hold for the next window step (names of data.sample_world.BUTTON_NAMES). It sees
+frame -> the list of buttons to hold for the next window step (names of sample_world.render.BUTTON_NAMES). It sees
 nothing else: no depth, pose or map. `load_policy(spec)` gives one from a built-in name or from
 `path/to/file.py:ClassName` (constructed without arguments).
 
@@ -22,7 +22,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from common.errors import InputError
-from data.sample_world import BUTTON_NAMES, STEP_TICS
+from sample_world.render import BUTTON_NAMES, STEP_TICS
 # the macro actions a cloned policy chooses between (held buttons), the explorer's own plus standing still
 MACROS = ((), ("MOVE_FORWARD",), ("MOVE_FORWARD", "TURN_LEFT"), ("MOVE_FORWARD", "TURN_RIGHT"), ("TURN_LEFT",),
           ("TURN_RIGHT",), ("MOVE_BACKWARD",), ("MOVE_FORWARD", "USE"))
@@ -38,7 +38,7 @@ class PolicyError(InputError):
 def check_action(action, name: str) -> np.ndarray:
     """A policy's answer -> the held buttons as a 0/1 vector in BUTTON_NAMES order; clear error for anything
     else."""
-    from data.doom_env import EnvInputError, buttons_from_names
+    from envs.doom import EnvInputError, buttons_from_names
 
     try:
         return buttons_from_names(action)

@@ -1,6 +1,6 @@
 """Generate future frames (as tokens) with a GENIE checkpoint from validation windows.
 
-    python genie/generate.py --checkpoint_dir data/genie_model/final_checkpt --output_dir data/genie_generated
+    python generate.py --checkpoint_dir data/genie_model/final_checkpt --output_dir data/genie_generated
     python visualize.py --token_dir data/genie_generated
 
 For each of `--num_examples` windows starting at dataset index `--example_ind`, the first `--num_prompt_frames`
@@ -11,8 +11,8 @@ contributes `2 * window_size - num_prompt_frames` frames, ordered prompt | predi
 
 Action-conditioned checkpoints (genie/actions.py) get the window's actions from the dataset under the challenge's
 rule (only the prompt's rows are known; later frames get "no action"), or are played:
-    python genie/generate.py ... --latent_actions 3,3,1,0,2,2,5,7   # one LAM latent action per generated frame
-    python genie/generate.py ... --actions_from_data                 # the data's own actions for generated frames
+    python generate.py ... --latent_actions 3,3,1,0,2,2,5,7   # one LAM latent action per generated frame
+    python generate.py ... --actions_from_data                 # the data's own actions for generated frames
     python visualize.py --token_dir data/genie_generated --label_action latent_action
 With latent actions, actions/latent_action.bin in the output holds each output frame's latent action (-1: none;
 prompt and ground-truth frames: the dataset's ids when it has them).
@@ -31,13 +31,13 @@ from tqdm.auto import tqdm
 from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, run_main, setup_logging
 from common.errors import DataMismatchError
 from data import RawTokenDataset, write_token_dataset
-from genie.action_data import LATENT_ACTION_NAME, prepare_action_streams, stack_streams, window_actions
+from training.action_streams import LATENT_ACTION_NAME, prepare_action_streams, stack_streams, window_actions
 from genie.config import check_dataset_matches
 from genie.decoding import add_decoding_args, apply_decoding, check_decoding_args, sampler_kwargs
-from genie.inference import generate as generate_frames, teacher_forced
+from genie.inference import generate_frames, teacher_forced
 from genie.model import STMaskGIT
 
-logger = logging.getLogger("genie.generate")
+logger = logging.getLogger("generate")
 
 
 def parse_args(argv=None) -> argparse.Namespace:

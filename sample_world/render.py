@@ -29,7 +29,7 @@ walker stays trapped in a closet, is replayed with the next seed (is_good_episod
 (other seeds) on VAL_MAPS: the first eight training maps plus HELDOUT_MAPS, a map never seen in training.
 
 Usage:
-    python -m data.sample_world --output_dir data/sample/raw --seed 0
+    python -m sample_world.render --output_dir data/sample/raw --seed 0
 """
 import argparse
 import dataclasses
@@ -255,7 +255,7 @@ def wad_name(map_name: str) -> str:
 
 
 def _wad_path(map_name: str) -> str:
-    import vizdoom as vzd  # imported here so `import data.sample_world` works without the optional dependency
+    import vizdoom as vzd  # imported here so `import sample_world.render` works without the optional dependency
 
     return os.path.join(os.path.dirname(vzd.__file__), wad_name(map_name))
 
@@ -662,4 +662,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(run_main("data.sample_world", main))
+    sys.exit(run_main("sample_world.render", main))
