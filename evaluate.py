@@ -21,10 +21,15 @@ rollout_psnr, hold_psnr, rollout_ssim, hold_ssim, rollout_lpips, hold_lpips (lis
 --skip_lpips); rollout_unchanged, true_unchanged (the share of tokens equal to the same position one frame earlier)
 and rollout_repeated, true_repeated (equal to their left neighbour): a rollout that freezes or flattens; each list
 with its _mean; rollout_far_psnr, hold_far_psnr (the last horizon); the sampler (maskgit_steps, temperature,
-copy_bias, greedy_tokens, stall_ratio); gen_time (s per generated frame); num_examples.
+unmask_mode, copy_bias, greedy_tokens, stall_ratio); gen_time (s per generated frame); num_examples.
+
+Decoding: a model samples as its checkpoint's decoding.json says (what it was trained to be sampled with; the
+published checkpoints have none and decode as the published code: greedy, 2 MaskGIT steps); each decoding flag
+overrides one value, and the JSON line records what was used (the teacher-forced protocol under "decoding": the
+checkpoint's MaskGIT steps, greedy, no copy bias, as the challenge scores a model, unless flags say otherwise).
 
 Diagnostics that score other futures the same way (the copy ceiling, per-window scores and their breakdown by
-motion, a model without its actions) are `python -m evaluation.diagnostics`.
+motion, a model without its actions, the control check, the data's baselines) are `diagnose.py`.
 """
 import argparse
 import json
@@ -38,11 +43,12 @@ import torch
 from common.cli import run_main, setup_logging
 from data import RawTokenDataset
 from training.action_streams import LATENT_ACTION_NAME, latent_action_sidecar
-from evaluation.protocols import (EvaluationError, add_protocol_args, add_save_outputs_arg, add_window_args,  # noqa: F401
-                              check_protocol_args, check_window_args, delta_psnr, frame_scorer, load_model,
-                              model_windows, rollout_evaluate, start_process, teacher_forced_run)
+from evaluation.cli import (POLICIES_HELP, add_policy_args, add_protocol_args, add_save_outputs_arg, add_window_args,
+                            check_policy_args, check_protocol_args, check_window_args, eval_config, policy_config)
+from evaluation.policy_ranking import run_policies
+from evaluation.protocols import (EvalConfig, EvaluationError, delta_psnr, frame_scorer, load_model,  # noqa: F401
+                                  model_windows, rollout_evaluate, start_process, teacher_forced_run)
 from genie.model import STMaskGIT
-from evaluation.policy_ranking import POLICIES_HELP, add_policy_args, check_policy_args, run_policies
 from lam.data import valid_targets
 from lam.probe import action_probe, transition_labels
 
@@ -109,32 +115,33 @@ def latent_action_probe(val_ds: RawTokenDataset, train_data_dir, stride: int) ->
     return {"action_probe_acc": result["probe_acc"], "action_majority_rate": result["majority_rate"]}
 
 
-def teacher_forced_result(model: STMaskGIT, loader, dataset: RawTokenDataset, args: argparse.Namespace,
-                          device: torch.device) -> dict:
+def teacher_forced_result(model: STMaskGIT, loader, dataset: RawTokenDataset, cfg: EvalConfig, device: torch.device,
+                          train_data_dir: str, delta_psnr_seeds: int) -> dict:
     """The teacher-forced protocol's metrics, plus the latent-action metrics for models that have them."""
     with torch.no_grad():
-        result, scorer = teacher_forced_run(model, loader, dataset, args, device)
+        result, scorer = teacher_forced_run(model, loader, dataset, cfg, device)
         if model.config.num_latent_actions:
             if scorer is None:
                 logger.warning("--skip_lpips: nothing is decoded, so delta_psnr is null")
-            seeds = [args.seed + i for i in range(args.delta_psnr_seeds)]
-            runs = None if scorer is None else delta_psnr(model, loader, args, device, scorer, seeds)
+            seeds = [cfg.seed + i for i in range(delta_psnr_seeds)]
+            runs = None if scorer is None else delta_psnr(model, loader, cfg, device, scorer, seeds)
             result["delta_psnr"] = None if runs is None else sum(runs) / len(runs)
             result["delta_psnr_runs"] = runs
-            result.update(latent_action_probe(dataset, args.train_data_dir, args.stride))
+            result.update(latent_action_probe(dataset, train_data_dir, cfg.stride))
     return result
 
 
 def run(args: argparse.Namespace) -> dict:
     """The JSON line of --protocol on --checkpoint_dir and --val_data_dir."""
     if args.protocol == "policies":
-        return run_policies(args)
-    device = start_process(args)
-    model = load_model(args, device)
-    dataset, _, loader = model_windows(model, args)
+        return run_policies(policy_config(args))
+    cfg = eval_config(args)
+    device = start_process(cfg.device, cfg.num_threads, cfg.seed)
+    model = load_model(cfg, device, teacher_forced_protocol=args.protocol == "teacher_forced")
+    dataset, _, loader = model_windows(model, cfg)
     if args.protocol == "rollout":
-        return rollout_evaluate(model, loader, args, device, frame_scorer(args, dataset, device, "rollout"))
-    return teacher_forced_result(model, loader, dataset, args, device)
+        return rollout_evaluate(model, loader, cfg, device, frame_scorer(cfg, dataset, device, "rollout"))
+    return teacher_forced_result(model, loader, dataset, cfg, device, args.train_data_dir, args.delta_psnr_seeds)
 
 
 def main(argv=None) -> int:

@@ -33,7 +33,8 @@ from common.errors import DataMismatchError
 from data import RawTokenDataset, write_token_dataset
 from training.action_streams import LATENT_ACTION_NAME, prepare_action_streams, stack_streams, window_actions
 from genie.config import check_dataset_matches
-from genie.decoding import add_decoding_args, apply_decoding, check_decoding_args, sampler_kwargs
+from evaluation.cli import add_decoding_args, check_decoding_args, decoding_overrides
+from evaluation.protocols import apply_decoding
 from genie.inference import generate_frames, teacher_forced
 from genie.model import STMaskGIT
 
@@ -153,7 +154,8 @@ def predict(model: STMaskGIT, gt_BTHW: torch.Tensor, args, generator: torch.Gene
     actions_BTD / latent_BT: the windows' action rows (action-conditioned models); with --latent_actions the
     generated frames' latent rows are the played ids.
     """
-    kwargs = dict(**sampler_kwargs(args), generator=generator, actions=actions_BTD, latent_actions=latent_BT)
+    kwargs = dict(**model.decoding.sampler_kwargs(), generator=generator, actions=actions_BTD,
+                  latent_actions=latent_BT)
     P, T = args.num_prompt_frames, gt_BTHW.shape[1]
     if args.teacher_force_time:
         # All frames 1..T-1 from their ground-truth past in one cached pass per MaskGIT step; keep P..T-1.
@@ -170,7 +172,7 @@ def predict(model: STMaskGIT, gt_BTHW: torch.Tensor, args, generator: torch.Gene
             actions_BTD[:, P:] = float("nan")
         kwargs.update(actions=actions_BTD, latent_actions=latent_BT)
     tokens_BTHW, _ = generate_frames(model, gt_BTHW[:, :P], T - P, control=control,
-                                     stall_ratio=args.stall_ratio, **kwargs)
+                                     stall_ratio=model.decoding.stall_ratio, **kwargs)
     return tokens_BTHW[:, P:]
 
 
@@ -196,7 +198,8 @@ def generate(args) -> dict:
     model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device)
     dataset = RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride)
     check_compatible(model, dataset, args)
-    apply_decoding(model, args, args.checkpoint_dir)
+    apply_decoding(model, decoding_overrides(args), args.checkpoint_dir)
+    decoding = model.decoding
     s, P, T = dataset.metadata["s"], args.num_prompt_frames, args.window_size
     generator = torch.Generator(device).manual_seed(args.seed)
     K = model.config.num_latent_actions
@@ -229,12 +232,12 @@ def generate(args) -> dict:
     metadata.update(num_prompt_frames=P, window_size=T, num_examples=len(indices), example_ind=args.example_ind,
                     example_stride=args.example_stride,
                     frames_per_example=frames_per_example, teacher_force_time=args.teacher_force_time,
-                    maskgit_steps=args.maskgit_steps, temperature=args.temperature, unmask_mode=args.unmask_mode,
-                    stall_ratio=args.stall_ratio,
+                    maskgit_steps=decoding.maskgit_steps, temperature=decoding.temperature,
+                    unmask_mode=decoding.unmask_mode, stall_ratio=decoding.stall_ratio,
                     stride=args.stride, checkpoint_dir=str(args.checkpoint_dir), val_data_dir=str(args.val_data_dir))
     actions = None
     if model.copy_head is not None:
-        metadata.update(copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens)
+        metadata.update(copy_bias=decoding.copy_bias, greedy_tokens=decoding.greedy_tokens)
     if model.config.uses_actions:
         metadata.update(actions_from_data=args.actions_from_data, latent_actions=args.latent_actions)
     if K:

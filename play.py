@@ -6,7 +6,9 @@
 
 The page shows the frame the model imagines, upscaled; hold the arrow keys or W A S D (E: use) or the on-screen
 buttons to walk, press R for another start. A latent-action model takes keys 1-8 instead. When the model was trained
-on the sample world, the real world plays beside it: the same buttons in ViZDoom, from the same start.
+on the sample world, the real world plays beside it: the same buttons in ViZDoom, from the same start. Frames are
+sampled as the checkpoint's decoding.json says (the main command's: whole tokens at temperature 1, copy bias 2);
+the decoding flags override single values.
 
 The page talks to the server through the HTTP API that scripts may use as well (one player at a time):
     POST /reset  JSON body optional: {"seed": n} (a start drawn with that seed) or {"window": i} (window i of the
@@ -21,7 +23,8 @@ import argparse
 import logging
 import sys
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, finite_float, run_main
+from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, run_main
+from evaluation.cli import add_decoding_args, check_decoding_args, decoding_overrides
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -36,22 +39,15 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="tokenizer that decodes the frames (default: the one the data's metadata names)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default: %(default)s, this machine only)")
     p.add_argument("--port", type=int, default=8000, help="port to serve on (default: %(default)s)")
-    p.add_argument("--temperature", type=finite_float, default=1.0,
-                   help="sampling temperature of each new frame, >= 0; 0 is greedy (default: %(default)s: the "
-                        "sampled futures, which beat greedy ones on every set)")
-    p.add_argument("--maskgit_steps", type=int, default=2, help="MaskGIT steps per frame, >= 1 (default: %(default)s)")
-    p.add_argument("--copy_bias", type=finite_float, default=2.0,
-                   help="models with a copy head: added to each previous-frame neighbour's score (default: "
-                        "%(default)s, the main command's)")
     p.add_argument("--prompt_frames", type=int, default=None,
                    help="recorded frames of a window given as the start (default: the model's num_prompt_frames)")
     p.add_argument("--no_real_world", action="store_true", help="do not play the real world beside the model")
     p.add_argument("--seed", type=int, default=0, help="seed of the first start and of the sampler")
     add_device_arg(p)
     add_num_threads_arg(p)
+    add_decoding_args(p)
     args = p.parse_args(argv)
-    if args.temperature < 0 or args.maskgit_steps < 1:
-        p.error(f"need --temperature >= 0 and --maskgit_steps >= 1, got {args.temperature}, {args.maskgit_steps}")
+    check_decoding_args(p, args)
     if not 0 < args.port < 65536:
         p.error(f"--port must be in 1..65535, got {args.port}")
     return args
@@ -65,7 +61,10 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     apply_cpu_settings(args.num_threads)
-    app = build_app(make_session(args))
+    overrides = decoding_overrides(args)
+    session = make_session(args.checkpoint_dir, args.data_dir, args.tokenizer_ckpt, resolve_device(args.device),
+                           overrides, args.prompt_frames, not args.no_real_world, args.seed)
+    app = build_app(session)
     print(f"play: open http://{args.host}:{args.port}/ in a browser (Ctrl-C stops)", flush=True)
     uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
     return 0

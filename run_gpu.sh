@@ -8,20 +8,22 @@
 #      (rendered by WORKERS processes, default the CPU count up to 8: 108 s with two on an H200 box; tokenized on the
 #      GPU in seconds). At 900 steps, 16 maps x 8 walks gave better tokens and sampled futures than 8 maps x 16 walks
 #      on every unseen set, and worse on validation's familiar maps (two seeds against one; README);
-#   2. ./run_sample.sh on it with genie/configs/gpu_world_actions.json (8 layers, d_model 256: 10 M parameters, the
-#      main command's model otherwise), STEPS (default 900) steps of 32 windows, the first WARMUP (default
-#      STEPS/20) warming up, at learning rate 3e-3 (LR; the main command's 1e-2 diverges at this size: on an H200
-#      the loss left 6 near step 79 and passed 1e6 by step 120, with or without actions, while 3e-3 kept falling
-#      over 900 steps), run_sample.sh's weight decay (WEIGHT_DECAY, 0.4), bf16 autocast (train.py's default on
-#      CUDA), eager (COMPILE=1 adds torch.compile: its ~4 min of compiling pays for itself only past ~2,000 steps),
-#      a checkpoint and a validation every 300 steps, then every evaluation of the main command, teacher-forced on
-#      all validation windows, and on the unseen maps too when ./build.sh --unseen made them.
+#   2. ./run_sample.sh on it with the recipe file recipes/gpu_world.json (RECIPE): its model (8 layers, d_model 256:
+#      10 M parameters, the main command's model otherwise), 900 steps (STEPS) of 32 windows, the first 45 (WARMUP;
+#      STEPS/20 when STEPS is set) warming up, at learning rate 3e-3 (LR; the main command's 1e-2 diverges at this
+#      size: on an H200 the loss left 6 near step 79 and passed 1e6 by step 120, with or without actions, while 3e-3
+#      kept falling over 900 steps), the main command's weight decay (WEIGHT_DECAY, 0.4), bf16 autocast (train.py's
+#      default on CUDA), eager (COMPILE=1 adds torch.compile: its ~4 min of compiling pays for itself only past
+#      ~2,000 steps), a checkpoint and a validation every 300 steps, and the main command's decoding; then every
+#      evaluation of the main command, teacher-forced on all validation windows, and on the unseen maps too when
+#      ./build.sh --unseen made them.
 # Measured on an H200 (README, "A recipe for a GPU box"): the defaults, seeds 42 and 1, about 4.5 min of training.
 # Longer is not better for the futures: at STEPS=1500 (seed 42) the tokens gained on every set, but the sampled
 # futures on the unseen sets that no run tunes on fell (third set +0.90 dB over holding against +1.20 / +1.23).
 # The model without actions: GENIE_CONFIG=genie/configs/gpu_world.json GENERATE_ARGS= ./run_gpu.sh (STALL_RATIO
 # as in run_sample.sh)
-# Extra arguments go to train.py after the recipe's (they win); the environment variables of run_sample.sh apply
+# Extra arguments go to train.py after the recipe's values and the variables' flags (they win); the environment
+# variables of run_sample.sh apply
 # (OUT defaults to data/genie_gpu here), and BUILD_ARGS adds flags to sample_world.build (e.g. --turn_speed).
 # SKIP_BUILD=1 trains on GPU_DIR as it is (its train/ and val/ built on another machine and copied, e.g. to a GPU
 # box without ViZDoom; checked against their MANIFEST.json first: 34 MB as xz-compressed tokens at the default size).
@@ -62,11 +64,13 @@ else
     --train_maps ${TRAIN_MAPS:-$GPU_TRAIN_MAPS} --workers "${WORKERS:-$(( CPUS < 8 ? CPUS : 8 ))}" ${BUILD_ARGS:-}
 fi
 
-export SAMPLE_DIR=$GPU_DIR OUT=${OUT:-data/genie_gpu} GENIE_CONFIG=${GENIE_CONFIG:-genie/configs/gpu_world_actions.json}
+export SAMPLE_DIR=$GPU_DIR OUT=${OUT:-data/genie_gpu} RECIPE=${RECIPE:-recipes/gpu_world.json}
 export EVAL_ARGS=${EVAL_ARGS-}
-STEPS=${STEPS:-900}
-COMPILE_ARGS=--no_compile
-[ "${COMPILE:-0}" != 1 ] || COMPILE_ARGS=
-exec ./run_sample.sh --per_device_train_batch_size 32 --max_train_steps "$STEPS" --num_warmup_steps "${WARMUP:-$(( STEPS / 20 ))}" \
-  --learning_rate "${LR:-3e-3}" $COMPILE_ARGS \
-  --eval_every_n_steps 300 --max_eval_steps 32 --checkpointing_steps 300 "$@"
+# the variables that are set override the recipe's values
+OVERRIDES=()
+[ -z "${STEPS:-}" ] || OVERRIDES+=(--max_train_steps "$STEPS")
+if [ -n "${WARMUP:-}" ]; then OVERRIDES+=(--num_warmup_steps "$WARMUP")
+elif [ -n "${STEPS:-}" ]; then OVERRIDES+=(--num_warmup_steps "$(( STEPS / 20 ))"); fi
+[ -z "${LR:-}" ] || OVERRIDES+=(--learning_rate "$LR")
+[ "${COMPILE:-0}" != 1 ] || OVERRIDES+=(--compile)
+exec ./run_sample.sh ${OVERRIDES[@]+"${OVERRIDES[@]}"} "$@"

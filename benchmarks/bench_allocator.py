@@ -1,7 +1,7 @@
 """glibc's allocator defaults against the scripts' retained memory (common/allocator.py), on a training step or on
 tokenizing frames.
 
-    python benchmarks/bench_allocator.py --genie_config genie/configs/sample_world_actions.json --optimizer muon
+    python benchmarks/bench_allocator.py --genie_config recipes/sample_world.json --optimizer muon
     python benchmarks/bench_allocator.py --workload tokenize --frames data/sample/raw/val.npz
 
 The allocator's settings are process-wide, so each measurement is a process of its own, with GENIE_DEFAULT_MALLOC=1

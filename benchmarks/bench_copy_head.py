@@ -15,7 +15,7 @@ argmax of the sparse mixture (the plain argmax it replaced) and the mode with co
 neighbour (`--greedy_tokens best_neighbour`); and what sampling at temperature 1 adds:
 genie.sampling.sample_mixture_tokens (whole tokens) next to sample_factored_tokens over the mixture's marginals
 (what it replaced), and next to the same draws with the greedy mode computed too (which sampling never reads, so
-inference at a temperature skips it: `STMaskGIT.predict(greedy=False)`).
+inference at a temperature skips it: `STMaskGIT.predict_frames(greedy=False)`).
 """
 import argparse
 import sys

@@ -38,7 +38,8 @@ def parse_args(argv=None):
     p.add_argument("--warmup", type=int, default=8, help="untimed /step requests first (default: %(default)s)")
     p.add_argument("--model_steps", type=positive_int, default=24,
                    help="steps of the cached-vs-recomputed comparison (default: %(default)s)")
-    p.add_argument("--temperature", type=finite_float, default=1.0, help="play.py's --temperature")
+    p.add_argument("--temperature", type=finite_float, default=None,
+                   help="play.py's --temperature (default: the checkpoint's decoding)")
     p.add_argument("--no_real_world", action="store_true", help="serve without the real world beside the model")
     p.add_argument("--seed", type=int, default=0)
     add_num_threads_arg(p)
@@ -108,11 +109,12 @@ def model_step_times(env, args) -> dict:
         phase = "growing" if len(tokens) < env.T - 1 else "sliding"
         state = env._generator.get_state()
         t0 = time.perf_counter()
-        frame, cache = next_frame(env.model, tokens, actions, latent, cache, env.maskgit_steps, env.temperature,
-                                  torch.Generator().set_state(state))
+        decoding = env.model.decoding
+        frame, cache = next_frame(env.model, tokens, actions, latent, cache, decoding.maskgit_steps,
+                                  decoding.temperature, torch.Generator().set_state(state))
         t1 = time.perf_counter()
-        again = next_frame_recomputed(env.model, tokens, actions, latent, env.maskgit_steps, env.temperature,
-                                      torch.Generator().set_state(state))
+        again = next_frame_recomputed(env.model, tokens, actions, latent, decoding.maskgit_steps,
+                                      decoding.temperature, torch.Generator().set_state(state))
         t2 = time.perf_counter()
         same.append(float((frame == again).float().mean()))
         times[phase][0].append(t1 - t0)
@@ -132,14 +134,14 @@ def main(argv=None) -> int:
     apply_cpu_settings(args.num_threads)
     from play_server.app import make_session
 
-    session = make_session(argparse.Namespace(
-        checkpoint_dir=args.checkpoint_dir, data_dir=args.data_dir, tokenizer_ckpt=None, device="cpu",
-        copy_bias=2.0, temperature=args.temperature, maskgit_steps=2, prompt_frames=None,
-        no_real_world=args.no_real_world, seed=args.seed))
+    overrides = {} if args.temperature is None else {"temperature": args.temperature}
+    session = make_session(args.checkpoint_dir, args.data_dir, device="cpu", decoding=overrides,
+                           real_world=not args.no_real_world, seed=args.seed)
     steps_per_second = http_steps_per_second(session, args)
     real = session.real_env is not None
     print(f"/step through HTTP: {steps_per_second:.1f} steps/s (decoding + PNG + HTTP, real world beside: "
-          f"{'yes' if real else 'no'}, temperature {args.temperature}, {torch.get_num_threads()} threads)")
+          f"{'yes' if real else 'no'}, temperature {session.env.model.decoding.temperature}, "
+          f"{torch.get_num_threads()} threads)")
     model = model_step_times(session.env, args)
     for phase in ("growing", "sliding"):
         if phase in model:
@@ -149,7 +151,7 @@ def main(argv=None) -> int:
     print(f"the two agree on {100 * model['same_tokens']:.2f} % of the new frames' tokens (same context, actions and "
           f"random state; float rounding can flip a near-tie)")
     print(json.dumps({"http_steps_per_second": steps_per_second, "real_world": real,
-                      "temperature": args.temperature, "threads": torch.get_num_threads(), "model_step": model}))
+                      "temperature": session.env.model.decoding.temperature, "threads": torch.get_num_threads(), "model_step": model}))
     return 0
 
 

@@ -6,7 +6,7 @@
     python benchmarks/bench_train.py --optimizer compare        # AdamW vs Muon + AdamW (train.py --optimizer)
     python benchmarks/bench_train.py --genie_config genie/configs/sample_world.json --profile   # the CPU default
     python benchmarks/bench_train.py --device cuda --mixed_precision bf16 --compile --batch_size 16
-    python benchmarks/bench_allocator.py --genie_config genie/configs/sample_world_actions.json --optimizer muon
+    python benchmarks/bench_allocator.py --genie_config recipes/sample_world.json --optimizer muon   # the main model
                                                            # glibc's allocator defaults vs retained memory
                                                            # (GENIE_DEFAULT_MALLOC=1: this script with glibc's)
 
@@ -33,6 +33,7 @@ from common.cli import (NO_NATIVE_BF16, add_device_arg, add_num_threads_arg, app
 from common.muon import build_optimizer
 from training.action_streams import LATENT_ACTION_NAME
 from training.masking import get_maskgit_collator
+from training.recipe import load_model_config
 from genie.transformer import set_cpu_bf16_math
 from genie.config import GenieConfig, TrainingRecipe
 from genie.model import STMaskGIT
@@ -45,8 +46,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description="Measure STMaskGIT training tokens/s.",
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--genie_config", default=None,
-                   help="Benchmark the model of this config JSON (e.g. genie/configs/sample_world.json, with its "
-                        "copy head) instead of the shape flags below (--batch_size still applies).")
+                   help="Benchmark the model of this config JSON, or of a run recipe's model (e.g. "
+                        "genie/configs/sample_world.json, with its copy head, or recipes/sample_world.json) instead "
+                        "of the shape flags below (--batch_size still applies).")
     p.add_argument("--recipe", default="config", choices=("config", "published"),
                    help="With --genie_config: train with the config's training recipe, as train.py does (e.g. "
                         "its self_reveal_ratio adds a pass without gradients for that share of the examples), or "
@@ -103,9 +105,9 @@ def make_step(model, optimizer, collate, windows, device, mixed_precision, full_
 def build(args, device, optimizer_name: str = "adamw"):
     recipe = TrainingRecipe()
     if args.genie_config:
-        config = GenieConfig.from_pretrained(args.genie_config)
+        config, config_recipe = load_model_config(args.genie_config)
         if args.recipe == "config":
-            recipe = TrainingRecipe.from_pretrained(args.genie_config)
+            recipe = config_recipe
     else:
         config = GenieConfig(num_layers=args.num_layers, num_heads=args.num_heads, d_model=args.d_model, T=args.T,
                              S=args.s ** 2, image_vocab_size=args.image_vocab_size)

@@ -6,9 +6,7 @@ import sys
 from pathlib import Path
 from typing import Callable, Optional
 
-import torch
-
-from common.allocator import retain_freed_memory
+from common.device import NO_NATIVE_BF16, apply_cpu_settings, cpu_has_native_bf16, resolve_device  # noqa: F401
 from common.errors import InputError, TrainingError, WriteError
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -18,48 +16,6 @@ LOG_DATE_FORMAT = "%H:%M:%S"
 def setup_logging(level: int = logging.INFO) -> None:
     """The one log format of all scripts (stderr, so that stdout stays free for results such as JSON lines)."""
     logging.basicConfig(format=LOG_FORMAT, datefmt=LOG_DATE_FORMAT, level=level)
-
-
-def resolve_device(name: str) -> torch.device:
-    """'auto' -> cuda when available, else cpu; any other torch device name must exist on this machine."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise ValueError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N") from None
-    if device.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError(f"device {name!r}: CUDA is not available on this machine (use --device cpu or auto)")
-        if device.index is not None and device.index >= torch.cuda.device_count():
-            raise ValueError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
-    elif device.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"device {name!r}: MPS is not available on this machine (use --device cpu or auto)")
-    return device
-
-
-# /proc/cpuinfo flag names of native bf16 arithmetic: x86 (AVX512-BF16, AMX) and Arm (FEAT_BF16)
-NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")
-NO_NATIVE_BF16 = f"none of {', '.join(NATIVE_BF16_FLAGS)} among the CPU's /proc/cpuinfo flags"
-
-
-def cpu_has_native_bf16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:
-    """Whether this CPU computes bf16 natively, read from its feature flags; None where they cannot be read.
-
-    torch's own check (mkldnn) accepts any AVX-512 CPU, where bf16 is emulated and slower than fp32.
-    """
-    try:
-        text = Path(cpuinfo).read_text(errors="replace")
-    except OSError:
-        return None
-    flags = set()
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        if key.strip() in ("flags", "Features"):
-            flags.update(value.split())
-    if not flags:
-        return None
-    return not flags.isdisjoint(NATIVE_BF16_FLAGS)
 
 
 def _device_name(name: str) -> str:
@@ -115,15 +71,6 @@ def add_num_threads_arg(parser) -> None:
                         help="CPU threads for torch (0: torch's default, one per core); 1 gives steadier, often "
                              "faster runs of small models on a busy shared machine, e.g. two runs side by side on "
                              "two cores")
-
-
-def apply_cpu_settings(num_threads: int) -> None:
-    """A script's process-wide CPU settings, applied at the start of its main(): torch's thread count (0: torch's
-    default) and an allocator that keeps freed memory for the next step's tensors (common/allocator.py; glibc's
-    defaults where the environment opts out)."""
-    retain_freed_memory()
-    if num_threads > 0:
-        torch.set_num_threads(num_threads)
 
 
 def add_hidden_alias(parser, option: str, dest: str, **kwargs) -> None:

@@ -23,24 +23,15 @@ import numpy as np
 from gymnasium import spaces
 
 from common.errors import InputError
-from sample_world.render import (BUTTON_NAMES, HZ, SIDECAR_NAME, STEP_TICS, VAL_MAPS, WorldConfig, check_maps,
-                               engine_action, gamma_table, make_game, preprocess_frame, start_walk)
+from sample_world.render import (BUTTON_NAMES, HZ, SIDECAR_NAME, STEP_TICS, VAL_MAPS, WorldConfig,  # noqa: F401
+                                 buttons_from_names, check_maps, engine_action, gamma_table, make_game,
+                                 preprocess_frame, start_walk)
 
 MAX_START_FRAME = 1500  # recorded tics a random start walks before it begins (a recorded walk's length)
 
 
 class EnvInputError(InputError):
     """An action or a reset option that the environment cannot take."""
-
-
-def buttons_from_names(names: Sequence[str], button_names: Sequence[str] = BUTTON_NAMES) -> np.ndarray:
-    """Held button names (e.g. ["MOVE_FORWARD", "TURN_LEFT"]) -> a 0/1 int8 vector in `button_names` order."""
-    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
-        raise EnvInputError(f"action must be a list of button names, got {names!r}")
-    unknown = [n for n in names if n not in button_names]
-    if unknown:
-        raise EnvInputError(f"unknown button(s) {unknown}: the buttons are {list(button_names)}")
-    return np.array([int(b in names) for b in button_names], dtype=np.int8)
 
 
 def check_buttons(action, num_buttons: int) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Copy-the-last-frame baselines for the challenge metrics (docs/formats.md §5).
 
-    python -m evaluation.baselines --train_data_dir data/sample/train --val_data_dir data/sample/val
+    python diagnose.py baselines --train_data_dir data/sample/train --val_data_dir data/sample/val
 
 Token accuracy: predict frame t as a copy of ground-truth frame t-1. CE: the best smoothed copy, which puts
 probability p on each factor of the previous frame's token and spreads 1-p uniformly over the other V-1 values;
@@ -11,17 +11,13 @@ often followed the same token at the same position one window frame earlier (`lo
 frequent value after it (`factored_lookup_acc`: what greedy sampling of factorized logits does when all a model
 knows is that previous token); tokens never seen in training are copied. When the factor-wise choice scores
 below copying, a factorized model needs more than the previous token at its position to beat the copy baseline.
-The last stdout line is a JSON object.
 """
-import argparse
-import json
 import math
-import sys
+from typing import Optional
 
 import numpy as np
 import torch
 
-from common.cli import run_main
 from common.errors import DataMismatchError
 from data import RawTokenDataset
 from genie.factorization import factorize_token_ids
@@ -97,25 +93,6 @@ def lookup_baselines(train: RawTokenDataset, val: RawTokenDataset, num_factors: 
             "factored_lookup_acc": float((pred_factored == next_va).sum() / n)}
 
 
-def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--train_data_dir", default="data/sample/train", help="split used to fit p")
-    parser.add_argument("--val_data_dir", default="data/sample/val", help="split the baselines are measured on")
-    parser.add_argument("--window_size", type=int, default=16, help="frames per window")
-    parser.add_argument("--stride", type=int, default=15, help="frames between consecutive window frames")
-    parser.add_argument("--num_factored_vocabs", type=int, default=2, help="factors per token id")
-    parser.add_argument("--max_train_windows", type=int, default=2000,
-                        help="training windows (non-overlapping) used to fit p and the lookup tables")
-    parser.add_argument("--max_examples", type=int, default=None, help="validation windows to use (default: all)")
-    args = parser.parse_args(argv)
-    minimums = {"window_size": 2, "stride": 1, "num_factored_vocabs": 1, "max_train_windows": 1, "max_examples": 1}
-    for name, minimum in minimums.items():
-        value = getattr(args, name)
-        if value is not None and value < minimum:
-            parser.error(f"--{name} must be at least {minimum}, got {value}")
-    return args
-
-
 def factor_size_of(train: RawTokenDataset, val: RawTokenDataset, num_factored_vocabs: int) -> int:
     """The factored vocabulary size V of both splits (V ** F = vocab_size); errors name the split that differs."""
     vocab_size = val.vocab_size
@@ -129,21 +106,16 @@ def factor_size_of(train: RawTokenDataset, val: RawTokenDataset, num_factored_vo
     return factor_size
 
 
-def run(args: argparse.Namespace) -> dict:
-    train = RawTokenDataset(args.train_data_dir, args.window_size, args.stride, filter_overlaps=True)
-    val = RawTokenDataset(args.val_data_dir, args.window_size, args.stride, filter_overlaps=True)
-    factor_size = factor_size_of(train, val, args.num_factored_vocabs)
-    p = factor_match_rate(train, args.num_factored_vocabs, factor_size, args.max_train_windows)
-    result = copy_baseline(val, p, args.num_factored_vocabs, factor_size, args.max_examples)
-    result.update(lookup_baselines(train, val, args.num_factored_vocabs, factor_size, args.max_train_windows,
-                                   args.max_examples))
-    result["num_examples"] = min(len(val), args.max_examples or len(val))
+def baselines(train_data_dir, val_data_dir, window_size: int = 16, stride: int = 15, num_factored_vocabs: int = 2,
+              max_train_windows: int = 2000, max_examples: Optional[int] = None) -> dict:
+    """Every baseline of val_data_dir's windows (window_size frames at stride, non-overlapping; the first
+    max_examples, default all), fitted on up to max_train_windows windows of train_data_dir: the JSON line of
+    `diagnose.py baselines`."""
+    train = RawTokenDataset(train_data_dir, window_size, stride, filter_overlaps=True)
+    val = RawTokenDataset(val_data_dir, window_size, stride, filter_overlaps=True)
+    factor_size = factor_size_of(train, val, num_factored_vocabs)
+    p = factor_match_rate(train, num_factored_vocabs, factor_size, max_train_windows)
+    result = copy_baseline(val, p, num_factored_vocabs, factor_size, max_examples)
+    result.update(lookup_baselines(train, val, num_factored_vocabs, factor_size, max_train_windows, max_examples))
+    result["num_examples"] = min(len(val), max_examples or len(val))
     return result
-
-
-def main(argv=None) -> None:
-    print(json.dumps(run(parse_args(argv))))
-
-
-if __name__ == "__main__":
-    sys.exit(run_main("evaluation.baselines", main))

@@ -1,4 +1,4 @@
-"""Does the world model obey its controls? (`python -m evaluation.diagnostics control`, evaluation/diagnostics.py)
+"""Does the world model obey its controls? (`python diagnose.py control`, evaluation/diagnostics.py)
 
 From each of N starts (windows spread over a token dataset), the world model environment (envs/world_model.py) holds
 one button for K steps: TURN_LEFT, TURN_RIGHT, MOVE_FORWARD, each from the same start with the same sampler seed.

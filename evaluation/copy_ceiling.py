@@ -3,7 +3,7 @@
 The previous-frame pointer (genie/copy_head.py) makes greedy futures that are almost all copies: every token of a
 generated frame is some neighbour's token in the frame before it. This measures the best such futures, chosen
 knowing the truth, as a diagnostic of how much of a model's gap to the truth is its choice of copies and how much is
-copying itself (`python -m evaluation.diagnostics copy_ceiling`, which scores them like a model's rollouts).
+copying itself (`python diagnose.py copy_ceiling`, which scores them like a model's rollouts).
 
 Each frame after the prompt is made from the ceiling's own frame before it (so its errors compound as a rollout's
 do): every token is copied from one of the (2r+1)^2 neighbours of its position, the frame's edge tokens extended

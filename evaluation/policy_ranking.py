@@ -19,14 +19,13 @@ A policy's random numbers and the model's sampler get the same seed in both worl
 numbers).
 """
 import time
-from dataclasses import dataclass
-from typing import Dict, List, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 from tqdm import tqdm
 
 from common.errors import InputError
-from sample_world import render as sample_world
 from sample_world.render import BUTTON_NAMES, HZ, STEP_TICS, driving_command
 from sample_world.motion_estimator import distance_from_start
 from sample_world.policies import check_action
@@ -193,93 +192,84 @@ def ranking_lines(result: dict) -> List[str]:
 
 
 # ------------------------------------------------------------------ evaluate.py --protocol policies
-POLICIES_HELP = ("; policies: rank --policies by how far each gets from its start in --steps steps, inside the world "
-                 "model and in the real sample world, from the same starts (evaluation/policy_ranking.py)")
 DEFAULT_MAPS = ("MAP02", "MAP03", "MAP06", "MAP07")  # the first set of maps no run trains on
 
 
-def add_policy_args(parser) -> None:
-    from sample_world.policies import BUILTIN_POLICIES
-
-    group = parser.add_argument_group("policies protocol", "Ranking policies inside the world model (--protocol "
-                                                           "policies; the decoding flags set the model's sampler).")
-    group.add_argument("--policies", nargs="+", default=list(BUILTIN_POLICIES),
-                       help="Built-in policy names or path/to/file.py:ClassName (default: the built-in suite, "
-                            "%(default)s).")
-    group.add_argument("--maps", nargs="+", type=sample_world.map_name, default=list(DEFAULT_MAPS),
-                       help="Maps of the starts (default: %(default)s, never trained on).")
-    group.add_argument("--starts", type=int, default=4, help="Starts per map (default: %(default)s).")
-    group.add_argument("--steps", type=int, default=16,
-                       help="Window steps each policy drives, 15 tics each (default: %(default)s, 6.9 s).")
-    group.add_argument("--policy_dir", default="data/policies",
-                       help="Where the cloned policies and the motion estimator are kept; trained there on first use "
-                            "from --policy_train_data (default: %(default)s).")
-    group.add_argument("--policy_train_data", default="data/sample/raw/train.npz",
-                       help="Recorded walks (frames, buttons, measured motion) that the cloned policies and the "
-                            "motion estimator learn from (default: %(default)s).")
-
-
-def check_policy_args(parser, args) -> None:
-    for name in ("starts", "steps"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+@dataclass
+class PolicyRankingConfig:
+    """The policies protocol's settings: `policies` (built-in names or path/to/file.py:ClassName) from `starts` starts
+    on each of `maps`, `steps` window steps each, the starts drawn with `seed`; the model of checkpoint_dir (frames
+    decoded by tokenizer_ckpt, default the sample world's) prompted with num_prompt_frames recorded frames (None: the
+    model's num_prompt_frames), decoding as its checkpoint says overridden by `decoding` (DecodingConfig fields);
+    the cloned policies and the motion estimator kept in policy_dir, trained on first use from policy_train_data."""
+    checkpoint_dir: str
+    policies: List[str]
+    maps: List[str] = field(default_factory=lambda: list(DEFAULT_MAPS))
+    starts: int = 4
+    steps: int = 16
+    seed: int = 0
+    num_prompt_frames: Optional[int] = None
+    tokenizer_ckpt: Optional[str] = None
+    decoding: Dict[str, Any] = field(default_factory=dict)
+    policy_dir: str = "data/policies"
+    policy_train_data: str = "data/sample/raw/train.npz"
+    device: str = "auto"
+    num_threads: int = 0
 
 
-def ensure_trained(args) -> None:
-    """Train the cloned policies and the motion estimator into --policy_dir when they are not there."""
+def ensure_trained(cfg: PolicyRankingConfig) -> None:
+    """Train the cloned policies and the motion estimator into cfg.policy_dir when they are not there."""
     from pathlib import Path
 
     from sample_world.motion_estimator import train_motion_estimator
     from sample_world.policies import BC_BUDGETS, train_bc_policies
 
-    policy_dir = Path(args.policy_dir)
-    wanted_bc = any(p.partition("_random")[0] in BC_BUDGETS for p in args.policies if ":" not in p)
+    policy_dir = Path(cfg.policy_dir)
+    wanted_bc = any(p.partition("_random")[0] in BC_BUDGETS for p in cfg.policies if ":" not in p)
     missing_bc = not all((policy_dir / f"{n}.safetensors").is_file() for n in BC_BUDGETS)
     missing_estimator = not (policy_dir / "motion_estimator.safetensors").is_file()
     if (wanted_bc and missing_bc) or missing_estimator:
-        if not Path(args.policy_train_data).is_file():
-            raise PolicyEvalError(f"--policy_train_data {args.policy_train_data} not found: the recorded walks that "
+        if not Path(cfg.policy_train_data).is_file():
+            raise PolicyEvalError(f"--policy_train_data {cfg.policy_train_data} not found: the recorded walks that "
                                   f"the cloned policies and the motion estimator learn from (./build.sh makes them)")
     if wanted_bc and missing_bc:
-        train_bc_policies(args.policy_train_data, policy_dir, seed=0)
+        train_bc_policies(cfg.policy_train_data, policy_dir, seed=0)
     if missing_estimator:
-        train_motion_estimator(args.policy_train_data, policy_dir / "motion_estimator.safetensors", seed=0)
+        train_motion_estimator(cfg.policy_train_data, policy_dir / "motion_estimator.safetensors", seed=0)
 
 
-def run_policies(args) -> dict:
+def run_policies(cfg: PolicyRankingConfig) -> dict:
     """evaluate.py --protocol policies: the JSON line (module doc); readable lines to stderr."""
     import logging
     from pathlib import Path
 
     from envs.doom import DoomEnv, world_config
-    from genie.decoding import decoding_settings
-    from evaluation.protocols import start_process
+    from evaluation.protocols import apply_decoding, start_process
     from sample_world.motion_estimator import load_motion_estimator
     from sample_world.policies import load_policies
     from envs.world_model import WorldModelEnv
 
     logger = logging.getLogger("evaluate")
-    device = start_process(args)
-    maps = list(args.maps)
-    ensure_trained(args)
-    policies = load_policies(args.policies, Path(args.policy_dir))
-    estimator = load_motion_estimator(Path(args.policy_dir) / "motion_estimator.safetensors")
-    env = WorldModelEnv.from_checkpoint(args.checkpoint_dir, None, args.tokenizer_ckpt,
-                                        device=device, copy_bias=args.copy_bias, greedy_tokens=args.greedy_tokens,
-                                        temperature=args.temperature, maskgit_steps=args.maskgit_steps)
+    device = start_process(cfg.device, cfg.num_threads, cfg.seed)
+    maps = list(cfg.maps)
+    ensure_trained(cfg)
+    policies = load_policies(cfg.policies, Path(cfg.policy_dir))
+    estimator = load_motion_estimator(Path(cfg.policy_dir) / "motion_estimator.safetensors")
+    env = WorldModelEnv.from_checkpoint(cfg.checkpoint_dir, None, cfg.tokenizer_ckpt, device=device)
+    apply_decoding(env.model, cfg.decoding, cfg.checkpoint_dir)
     if not env.buttons:
-        raise PolicyEvalError(f"--checkpoint_dir {args.checkpoint_dir}: the policies protocol drives a model with "
+        raise PolicyEvalError(f"--checkpoint_dir {cfg.checkpoint_dir}: the policies protocol drives a model with "
                               f"the sample world's buttons; this one takes {env.model.config.action_names}")
-    raw_dir = Path(args.policy_train_data).parent
-    cfg = world_config(raw_dir) if (raw_dir / "sample_world.json").is_file() else None
-    real_env = DoomEnv(maps=maps, cfg=cfg)
+    raw_dir = Path(cfg.policy_train_data).parent
+    world = world_config(raw_dir) if (raw_dir / "sample_world.json").is_file() else None
+    real_env = DoomEnv(maps=maps, cfg=world)
     try:
-        prompt = args.num_prompt_frames or env.prompt_frames
-        starts = make_starts(real_env, maps, args.starts, prompt, args.seed)
-        result = evaluate_policies(policies, real_env, ModelWorld(env), estimator, starts, args.steps)
+        prompt = cfg.num_prompt_frames or env.prompt_frames
+        starts = make_starts(real_env, maps, cfg.starts, prompt, cfg.seed)
+        result = evaluate_policies(policies, real_env, ModelWorld(env), estimator, starts, cfg.steps)
     finally:
         real_env.close()
     for line in ranking_lines(result):
         logger.info(line)
-    return {**result, "maps": maps, "starts_per_map": args.starts, "seed": args.seed,
-            "checkpoint_dir": str(args.checkpoint_dir), "num_prompt_frames": prompt, **decoding_settings(args)}
+    return {**result, "maps": maps, "starts_per_map": cfg.starts, "seed": cfg.seed,
+            "checkpoint_dir": str(cfg.checkpoint_dir), "num_prompt_frames": prompt, **env.model.decoding.to_dict()}

@@ -1,5 +1,6 @@
-"""The challenge evaluator's protocols and scores, shared by evaluate.py (the two protocols) and evaluation/diagnostics.py
-(the same scores of other futures: withheld actions, per-window lines, the copy ceiling).
+"""The challenge evaluator's protocols and scores, shared by evaluate.py (the two protocols) and diagnose.py (the same
+scores of other futures: withheld actions, per-window lines, the copy ceiling). Functions take an `EvalConfig`; the
+flags that fill one are evaluation/cli.py's.
 
 Teacher-forced protocol (`teacher_forced_evaluate`): each window's frames 1..T-1 predicted with MaskGIT from their
 ground-truth past, scored by CE, token accuracy, copy_acc (copying ground-truth frame t-1), LPIPS and s/frame.
@@ -8,7 +9,6 @@ decoded and scored per horizon in pixels (PSNR, SSIM, LPIPS) against holding the
 statistics of a freezing or flattening rollout (`rollout_result` lists the keys). `delta_psnr` is Genie's
 controllability metric of latent-action models. Nothing here reads lam/ (the latent action probe is evaluate.py's).
 """
-import argparse
 import contextlib
 import json
 import logging
@@ -16,21 +16,22 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import List, Optional, Tuple
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device
+from common.device import apply_cpu_settings, resolve_device
 from common.errors import DataMismatchError, InputError, writing
 from common.files import atomic_file
 from common.images import psnr, ssim
 from data import RawTokenDataset, write_token_dataset
 from training.action_streams import prepare_action_streams, window_actions
 from genie.config import check_dataset_matches
-from genie.decoding import add_decoding_args, apply_decoding, check_decoding_args, decoding_settings, sampler_kwargs
+from genie.decoding import DecodingConfig
 from genie.inference import changed_share, generate_frames, teacher_forced
 from evaluation.metrics import RunningMean, images_to_unit_range
 from genie.metrics import factored_cross_entropy
@@ -55,7 +56,32 @@ class EvaluationError(InputError):
     that holds something else); data that does not fit the checkpoint raises DataMismatchError."""
 
 
-# ------------------------------------------------------------------ flags
+@dataclass
+class EvalConfig:
+    """What an evaluation scores and how: the windows of val_data_dir (window_size frames at stride, non-overlapping;
+    all, the first max_examples, or max_examples spread evenly), batch_size windows at a time, with the model of
+    checkpoint_dir; frames decoded by tokenizer_ckpt (default: the dataset metadata's, else DEFAULT_TOKENIZER), LPIPS
+    unless skip_lpips; the sampler seeded with `seed`; free-running futures from num_prompt_frames true frames.
+    decoding: overrides of the checkpoint's decoding (genie.decoding.DecodingConfig fields; None or missing: the
+    checkpoint's). save_outputs_dir: where the teacher-forced protocol writes its predictions (None: nowhere).
+    device, num_threads: the process's (common.device)."""
+    val_data_dir: str = DEFAULT_VAL_DIR
+    checkpoint_dir: str = DEFAULT_CHECKPOINT
+    window_size: int = 16
+    stride: int = 15
+    max_examples: Optional[int] = None
+    spread_examples: bool = False
+    batch_size: int = 16
+    tokenizer_ckpt: Optional[str] = None
+    skip_lpips: bool = False
+    seed: int = 0
+    num_prompt_frames: int = DEFAULT_ROLLOUT_PROMPT_FRAMES
+    decoding: Dict[str, Any] = field(default_factory=dict)
+    save_outputs_dir: Optional[str] = None
+    device: str = "auto"
+    num_threads: int = 0
+
+
 def default_val_data_dir() -> str:
     """data/val_v1.1, or the embedded sample world's validation split when only that exists."""
     if not Path(DEFAULT_VAL_DIR).exists() and Path(SAMPLE_VAL_DIR).exists():
@@ -63,145 +89,15 @@ def default_val_data_dir() -> str:
     return DEFAULT_VAL_DIR
 
 
-def add_window_args(parser, checkpoint: bool = True) -> None:
-    """The flags of every evaluation: the validation windows, frame decoding and scoring, the device; and unless
-    `checkpoint` is False (a diagnostic without a model), the checkpoint, the sampler's seed and the decoding flags
-    (genie/decoding.py). Check them with `check_window_args`."""
-    parser.add_argument("--val_data_dir", default=None,
-                        help=f"Token dataset to evaluate on (default: {DEFAULT_VAL_DIR}, or {SAMPLE_VAL_DIR} when "
-                             f"only that exists).")
-    if checkpoint:
-        parser.add_argument("--checkpoint_dir", default=DEFAULT_CHECKPOINT,
-                            help="GENIE checkpoint directory (config.json + model.safetensors) or a Hugging Face hub "
-                                 "id such as 1x-technologies/GENIE_35M (default: %(default)s).")
-    parser.add_argument("--window_size", type=int, default=16,
-                        help="Frames per validation window, >= 2 (default: %(default)s; at most the checkpoint's T).")
-    parser.add_argument("--stride", type=int, default=15,
-                        help="Frames of the dataset between a window's frames (default: %(default)s: 30 Hz / 15 = "
-                             "2 Hz). Windows do not overlap.")
-    parser.add_argument("--max_examples", type=int, default=None,
-                        help="Evaluate only N validation windows (keeps CPU runs short): the first N, or N evenly "
-                             "spaced over the dataset with --spread_examples (default: all).")
-    parser.add_argument("--spread_examples", action="store_true",
-                        help="With --max_examples: take the N windows evenly spaced over the whole dataset (every "
-                             "episode and map represented) instead of the first N (the start of the first episodes).")
-    parser.add_argument("--batch_size", type=int, default=16, help="Windows per forward pass (default: %(default)s).")
-    parser.add_argument("--tokenizer_ckpt", default=None,
-                        help="MAGVIT2 tokenizer that decodes token frames to pixels for LPIPS, PSNR and SSIM "
-                             f"(default: the dataset metadata's tokenizer_ckpt, else {DEFAULT_TOKENIZER}).")
-    parser.add_argument("--skip_lpips", action="store_true",
-                        help="Skip LPIPS (no LPIPS weights needed): the LPIPS keys are null. Teacher-forced: nothing "
-                             "is decoded either (no tokenizer needed; dec_time null). Rollout (and the "
-                             "diagnostics that score futures): frames are still decoded for PSNR / SSIM.")
-    add_device_arg(parser)
-    add_num_threads_arg(parser)
-    if checkpoint:
-        parser.add_argument("--seed", type=int, default=0,
-                            help="Seed of the sampler's random numbers (default: %(default)s).")
-        add_decoding_args(parser)
-    else:  # nothing random to seed
-        parser.set_defaults(seed=0)
-
-
-def add_protocol_args(parser, more: Tuple[str, ...] = (), more_help: str = "") -> None:
-    """--protocol (teacher_forced or rollout, and the protocols `more` that `more_help` describes) and
-    --num_prompt_frames (rollout only); check with `check_protocol_args`."""
-    parser.add_argument("--protocol", choices=PROTOCOLS + tuple(more), default=PROTOCOLS[0],
-                        help="teacher_forced (default): each frame predicted from the ground-truth frames before it, "
-                             "scored by CE, token accuracy, LPIPS and s/frame; rollout: prompt with the first "
-                             "--num_prompt_frames frames of each window, generate the rest free-running, score PSNR "
-                             "/ SSIM / LPIPS per horizon against holding the last prompt frame" + more_help + ".")
-    add_prompt_arg(parser, "Rollout protocol only: ")
-
-
-def add_prompt_arg(parser, applies: str = "") -> None:
-    """--num_prompt_frames of the free-running futures (default None: `check_prompt_arg` sets it)."""
-    parser.add_argument("--num_prompt_frames", type=int, default=None,
-                        help=f"{applies}ground-truth prompt frames P per window, 1 <= P < --window_size (default "
-                             f"{DEFAULT_ROLLOUT_PROMPT_FRAMES}); the other window_size - P frames are generated.")
-
-
-def add_save_outputs_arg(parser) -> None:
-    parser.add_argument("--save_outputs_dir", default=None,
-                        help="Teacher-forced protocol only: write the predictions as a token dataset in the generated "
-                             "layout (per window: frame 0 | predicted frames 1..T-1 | ground truth frames 1..T-1).")
-
-
-def add_per_window_arg(parser, applies: str = "", required: bool = False) -> None:
-    parser.add_argument("--per_window_out", default=None, required=required,
-                        help=f"{applies}write the scores of each window alone to this JSON Lines file (one line per "
-                             f"window, written when the run ends): window (its index among the dataset's windows), "
-                             f"first_frame (its first frame in video.bin), segment_id (when the dataset has "
-                             f"segment_ids.bin), and every per-horizon list of the summary (rollout_psnr, hold_psnr, "
-                             f"..., true_repeated) for that window; the summary's lists are their means. "
-                             f"`python -m evaluation.diagnostics breakdown` groups them by the walker's motion.")
-
-
-def check_window_args(parser, args: argparse.Namespace) -> None:
-    """Usage errors of `add_window_args`' flags; fills in --val_data_dir's default."""
-    if args.batch_size < 1:
-        parser.error(f"--batch_size must be >= 1, got {args.batch_size}")
-    if args.max_examples is not None and args.max_examples < 1:
-        parser.error(f"--max_examples must be >= 1, got {args.max_examples}")
-    if args.window_size < 2:
-        parser.error("--window_size must be >= 2 (frame 0 is the first prompt, frames 1.. are predicted)")
-    if args.stride < 1:
-        parser.error(f"--stride must be >= 1, got {args.stride}")
-    if hasattr(args, "maskgit_steps"):
-        check_decoding_args(parser, args)
-    if args.val_data_dir is None:
-        args.val_data_dir = default_val_data_dir()
-
-
-def check_prompt_arg(parser, args: argparse.Namespace) -> None:
-    """--num_prompt_frames of free-running futures: its default, its range, and --stall_ratio's need of 2."""
-    if args.num_prompt_frames is None:
-        args.num_prompt_frames = DEFAULT_ROLLOUT_PROMPT_FRAMES
-    if not 1 <= args.num_prompt_frames < args.window_size:
-        parser.error(f"--num_prompt_frames must be in 1..{args.window_size - 1} (at least one prompt frame and one "
-                     f"frame to generate in windows of --window_size {args.window_size}), got "
-                     f"{args.num_prompt_frames}")
-    if hasattr(args, "stall_ratio"):
-        check_decoding_args(parser, args, args.num_prompt_frames)
-
-
-def check_per_window_arg(parser, args: argparse.Namespace) -> None:
-    if args.per_window_out is not None and Path(args.per_window_out).is_dir():
-        parser.error(f"--per_window_out is a file to write; {args.per_window_out} is a directory")
-
-
-def check_protocol_args(parser, args: argparse.Namespace) -> None:
-    """Usage errors of flags that one protocol only takes (`add_protocol_args`, `add_save_outputs_arg`,
-    `add_per_window_arg` where the parser has them)."""
-    per_window = getattr(args, "per_window_out", None)
-    if args.protocol == "policies":
-        if args.save_outputs_dir is not None:
-            parser.error("--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
-                         "policies")
-        return
-    if args.protocol == "rollout":
-        check_prompt_arg(parser, args)
-        if args.save_outputs_dir is not None:
-            parser.error("--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
-                         "rollout")
-        if per_window is not None:
-            check_per_window_arg(parser, args)
-    else:
-        if args.num_prompt_frames is not None:
-            parser.error("--num_prompt_frames applies to --protocol rollout only")
-        if per_window is not None:
-            parser.error("--per_window_out applies to --protocol rollout only (the teacher-forced protocol's "
-                         "predictions: --save_outputs_dir)")
-
-
 # ------------------------------------------------------------------ set-up
-def start_process(args: argparse.Namespace) -> torch.device:
-    """The process set-up of a command that scores futures: one process, --device, --num_threads, --seed."""
+def start_process(device: str, num_threads: int, seed: int) -> torch.device:
+    """The process set-up of a command that scores futures: one process, its device, CPU threads (0: torch's
+    default) and seed."""
     check_single_process()
-    device = resolve_device(args.device)
-    apply_cpu_settings(args.num_threads)
-    torch.manual_seed(args.seed)
-    return device
+    torch_device = resolve_device(device)
+    apply_cpu_settings(num_threads)
+    torch.manual_seed(seed)
+    return torch_device
 
 
 def check_single_process() -> None:
@@ -211,11 +107,28 @@ def check_single_process() -> None:
                               f"plain `python evaluate.py` (not torchrun / accelerate launch with several processes)")
 
 
-def load_model(args: argparse.Namespace, device: torch.device) -> STMaskGIT:
-    """--checkpoint_dir on `device` in eval mode, decoding as the decoding flags say."""
-    model = STMaskGIT.from_pretrained(args.checkpoint_dir).to(device).eval()
-    apply_decoding(model, args, args.checkpoint_dir)
+def load_model(cfg: EvalConfig, device: torch.device, teacher_forced_protocol: bool = False) -> STMaskGIT:
+    """cfg.checkpoint_dir on `device` in eval mode, set to decode as cfg.decoding overrides its checkpoint's decoding
+    (for the teacher-forced protocol: the overrides of the checkpoint's `DecodingConfig.teacher_forced`)."""
+    model = STMaskGIT.from_pretrained(cfg.checkpoint_dir).to(device).eval()
+    base = model.decoding.teacher_forced() if teacher_forced_protocol else model.decoding
+    apply_decoding(model, cfg.decoding, cfg.checkpoint_dir, base)
     return model
+
+
+def apply_decoding(model: STMaskGIT, overrides: dict, checkpoint, base: Optional[DecodingConfig] = None) -> None:
+    """Set `model` (read from `checkpoint`, named in errors) to decode as `base` (default: its own decoding) with
+    the values of `overrides` (DecodingConfig fields) instead, and log what it will use."""
+    decoding = (model.decoding if base is None else base).override(**overrides)
+    if decoding.copy_bias and model.copy_head is None:
+        raise DataMismatchError(f"--copy_bias: the checkpoint {checkpoint} has no copy head (copy_radius)")
+    model.set_decoding(decoding)
+    logger.info("decoding: %s", ", ".join(f"{k} {v}" for k, v in decoding.to_dict().items()))
+
+
+def decoding_settings(decoding: DecodingConfig) -> dict:
+    """The sampler as a result records it."""
+    return decoding.to_dict()
 
 
 def example_indices(num_windows: int, max_examples: Optional[int], spread: bool) -> List[int]:
@@ -227,28 +140,28 @@ def example_indices(num_windows: int, max_examples: Optional[int], spread: bool)
     return [i * num_windows // max_examples for i in range(max_examples)]
 
 
-def windows_dataset(args: argparse.Namespace) -> RawTokenDataset:
+def windows_dataset(cfg: EvalConfig) -> RawTokenDataset:
     """--val_data_dir's non-overlapping windows of --window_size frames at --stride."""
-    return RawTokenDataset(args.val_data_dir, window_size=args.window_size, stride=args.stride, filter_overlaps=True)
+    return RawTokenDataset(cfg.val_data_dir, window_size=cfg.window_size, stride=cfg.stride, filter_overlaps=True)
 
 
-def windows_loader(dataset: RawTokenDataset, args: argparse.Namespace) -> Tuple[List[int], DataLoader]:
+def windows_loader(dataset: RawTokenDataset, cfg: EvalConfig) -> Tuple[List[int], DataLoader]:
     """(the indices of the windows evaluated, a loader of them in that order, --batch_size at a time)."""
-    indices = example_indices(len(dataset), args.max_examples, args.spread_examples)
-    return indices, DataLoader(Subset(dataset, indices), batch_size=args.batch_size, shuffle=False)
+    indices = example_indices(len(dataset), cfg.max_examples, cfg.spread_examples)
+    return indices, DataLoader(Subset(dataset, indices), batch_size=cfg.batch_size, shuffle=False)
 
 
-def model_windows(model: STMaskGIT, args: argparse.Namespace,
+def model_windows(model: STMaskGIT, cfg: EvalConfig,
                   withhold_actions: bool = False) -> Tuple[RawTokenDataset, List[int], DataLoader]:
     """`windows_dataset` checked against the model (and its action streams, unless they are withheld), and
     `windows_loader`."""
-    dataset = windows_dataset(args)
-    check_dataset_matches(model.config, dataset, args.window_size, f"checkpoint {args.checkpoint_dir}",
+    dataset = windows_dataset(cfg)
+    check_dataset_matches(model.config, dataset, cfg.window_size, f"checkpoint {cfg.checkpoint_dir}",
                           exact_window=False)
     if model.config.uses_actions and not withhold_actions:
         prepare_action_streams(model.config, dataset)
-    indices, loader = windows_loader(dataset, args)
-    logger.info("evaluating %d windows of %s with %s", len(indices), args.val_data_dir, args.checkpoint_dir)
+    indices, loader = windows_loader(dataset, cfg)
+    logger.info("evaluating %d windows of %s with %s", len(indices), cfg.val_data_dir, cfg.checkpoint_dir)
     return dataset, indices, loader
 
 
@@ -269,17 +182,17 @@ class FrameScorer:
         return self.lpips(images_to_unit_range(images_a), images_to_unit_range(images_b))
 
 
-def frame_scorer(args: argparse.Namespace, dataset: RawTokenDataset, device: torch.device,
+def frame_scorer(cfg: EvalConfig, dataset: RawTokenDataset, device: torch.device,
                  pixel_protocol: Optional[str] = None) -> FrameScorer:
     """The FrameScorer of --tokenizer_ckpt, else the dataset metadata's tokenizer, else DEFAULT_TOKENIZER; with
     LPIPS unless --skip_lpips. pixel_protocol: the protocol that scores futures in pixels (also with --skip_lpips),
     named in the error; None: the teacher-forced protocol, which decodes frames for LPIPS only."""
-    tokenizer_ckpt = args.tokenizer_ckpt or dataset.metadata.get("tokenizer_ckpt") or DEFAULT_TOKENIZER
+    tokenizer_ckpt = cfg.tokenizer_ckpt or dataset.metadata.get("tokenizer_ckpt") or DEFAULT_TOKENIZER
     try:
-        return FrameScorer(tokenizer_ckpt, device, with_lpips=not args.skip_lpips)
+        return FrameScorer(tokenizer_ckpt, device, with_lpips=not cfg.skip_lpips)
     except (FileNotFoundError, ValueError) as e:  # missing tokenizer / LPIPS weights, unreadable checkpoint
         if pixel_protocol is not None:
-            raise EvaluationError(f"cannot set up decoding{'' if args.skip_lpips else ' + LPIPS'}: {e}\nThe "
+            raise EvaluationError(f"cannot set up decoding{'' if cfg.skip_lpips else ' + LPIPS'}: {e}\nThe "
                                   f"{pixel_protocol} protocol decodes frames for PSNR and SSIM: pass --tokenizer_ckpt "
                                   f"(and --skip_lpips to go without LPIPS weights).") from None
         raise EvaluationError(f"cannot set up decoding + LPIPS: {e}\nPass --skip_lpips to evaluate without "
@@ -295,19 +208,19 @@ def _autocast(device: torch.device):
     return torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else contextlib.nullcontext()
 
 
-def batch_actions(model: STMaskGIT, batch: dict, device: torch.device, args: argparse.Namespace,
+def batch_actions(model: STMaskGIT, batch: dict, device: torch.device, cfg: EvalConfig,
                   withhold_actions: bool = False):
     """(real actions (B, T, D) or None, latent ids (B, T) or None) of a loader batch, for the model's inputs; none
     for a model without action inputs or with withhold_actions (every frame gets the learned "no action")."""
     if not model.config.uses_actions or withhold_actions:
         return None, None
-    actions_BTD, latent_BT = window_actions(model.config, batch["actions"], where=f"{args.val_data_dir}/actions")
+    actions_BTD, latent_BT = window_actions(model.config, batch["actions"], where=f"{cfg.val_data_dir}/actions")
     return (None if actions_BTD is None else actions_BTD.to(device),
             None if latent_BT is None else latent_BT.to(device))
 
 
 # ------------------------------------------------------------------ teacher-forced protocol
-def teacher_forced_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
+def teacher_forced_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.device,
                             scorer: Optional[FrameScorer] = None, outputs: Optional[list] = None,
                             withhold_actions: bool = False) -> dict:
     """Run the teacher-forced protocol over `loader`; return its metrics {TEACHER_FORCED_KEYS..., num_examples}
@@ -317,20 +230,20 @@ def teacher_forced_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, 
     outputs: when a list, per-window frames (frame 0 | predictions | ground truth) are appended to it as numpy.
     """
     metrics = {name: RunningMean() for name in TEACHER_FORCED_KEYS}
-    generator = torch.Generator(device=device).manual_seed(args.seed)
+    generator = torch.Generator(device=device).manual_seed(cfg.seed)
     num_examples = 0
     progress = tqdm(loader, desc="evaluate", unit="batch", file=sys.stderr)
     for batch in progress:
         x_BTHW = batch["tokens"].to(device)
         B, T = x_BTHW.shape[:2]
         targets_BTHW = x_BTHW[:, 1:]
-        actions_BTD, latent_BT = batch_actions(model, batch, device, args, withhold_actions)
+        actions_BTD, latent_BT = batch_actions(model, batch, device, cfg, withhold_actions)
 
         _synchronize(device)
         start = time.perf_counter()
         with _autocast(device):
-            samples_BTHW, logits_BVFTHW = teacher_forced(model, x_BTHW, args.maskgit_steps, args.temperature,
-                                                         args.unmask_mode, generator=generator,
+            samples_BTHW, logits_BVFTHW = teacher_forced(model, x_BTHW, **model.decoding.sampler_kwargs(),
+                                                         generator=generator,
                                                          actions=actions_BTD, latent_actions=latent_BT)
         _synchronize(device)
         metrics["gen_time"].update(time.perf_counter() - start, B * (T - 1))
@@ -381,15 +294,16 @@ def save_outputs(out_dir: str, windows: list, dataset, window_size: int) -> None
                                   "num_examples": len(video_WFHW)}, overwrite=True)
 
 
-def teacher_forced_run(model: STMaskGIT, loader, dataset: RawTokenDataset, args: argparse.Namespace,
+def teacher_forced_run(model: STMaskGIT, loader, dataset: RawTokenDataset, cfg: EvalConfig,
                        device: torch.device, withhold_actions: bool = False) -> Tuple[dict, Optional[FrameScorer]]:
     """`teacher_forced_evaluate` with the scorer the flags ask for (None with --skip_lpips), writing
     --save_outputs_dir; returns (the metrics, the scorer)."""
-    scorer = None if args.skip_lpips else frame_scorer(args, dataset, device)
-    outputs = [] if args.save_outputs_dir else None
-    result = teacher_forced_evaluate(model, loader, args, device, scorer, outputs, withhold_actions)
+    scorer = None if cfg.skip_lpips else frame_scorer(cfg, dataset, device)
+    outputs = [] if cfg.save_outputs_dir else None
+    result = teacher_forced_evaluate(model, loader, cfg, device, scorer, outputs, withhold_actions)
+    result["decoding"] = decoding_settings(model.decoding)
     if outputs is not None:
-        save_outputs(args.save_outputs_dir, outputs, dataset, args.window_size)
+        save_outputs(cfg.save_outputs_dir, outputs, dataset, cfg.window_size)
     return result, scorer
 
 
@@ -501,28 +415,28 @@ def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_ti
 
 
 @torch.no_grad()
-def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
+def rollout_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.device,
                      scorer: FrameScorer, per_window: Optional[list] = None, withhold_actions: bool = False) -> dict:
     """Run the rollout protocol over `loader`; return the JSON line's content (`rollout_result` and the sampler,
     `genie.decoding.decoding_settings`). Action-conditioned models play every action row of the window (the
     sampling challenge gives the future robot states), unless withhold_actions.
     per_window: when a list, each window's own scores are appended to it (`add_rollout_scores`)."""
-    P = args.num_prompt_frames
-    with_lpips = not args.skip_lpips
-    generator = torch.Generator(device=device).manual_seed(args.seed)
+    P = cfg.num_prompt_frames
+    with_lpips = not cfg.skip_lpips
+    generator = torch.Generator(device=device).manual_seed(cfg.seed)
     gen_time, sums, num_examples = RunningMean(), {}, 0
     progress = tqdm(loader, desc="rollout", unit="batch", file=sys.stderr)
     for batch in progress:
         x_BTHW = batch["tokens"].to(device)
         B, T = x_BTHW.shape[:2]
-        actions_BTD, latent_BT = batch_actions(model, batch, device, args, withhold_actions)
+        actions_BTD, latent_BT = batch_actions(model, batch, device, cfg, withhold_actions)
 
         _synchronize(device)
         start = time.perf_counter()
         with _autocast(device):
-            tokens_BTHW, _ = generate_frames(model, x_BTHW[:, :P], T - P, **sampler_kwargs(args), generator=generator,
-                                      actions=actions_BTD, latent_actions=latent_BT, control=True,
-                                      stall_ratio=args.stall_ratio)
+            tokens_BTHW, _ = generate_frames(model, x_BTHW[:, :P], T - P, **model.decoding.sampler_kwargs(),
+                                             generator=generator, actions=actions_BTD, latent_actions=latent_BT,
+                                             control=True, stall_ratio=model.decoding.stall_ratio)
         _synchronize(device)
         gen_time.update(time.perf_counter() - start, B * (T - P))
 
@@ -530,12 +444,12 @@ def rollout_evaluate(model: STMaskGIT, loader, args: argparse.Namespace, device:
         num_examples += B
         progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
-    return {**rollout_result(sums, num_examples, P, gen_time.mean), **decoding_settings(args)}
+    return {**rollout_result(sums, num_examples, P, gen_time.mean), **decoding_settings(model.decoding)}
 
 
 # ------------------------------------------------------------------ latent-action models
 @torch.no_grad()
-def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch.device,
+def delta_psnr(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.device,
                scorer: FrameScorer, seeds: List[int]) -> List[float]:
     """Genie's delta-PSNR: mean PSNR of frames generated with the ground truth's latent actions minus that with
     uniformly random latent actions, over the decoded frames after the config's num_prompt_frames. Real action
@@ -543,13 +457,13 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
     actions draw from seed + 1), each what that seed alone gives; the windows are read and their true frames decoded
     once for all seeds."""
     P, K = model.config.num_prompt_frames, model.config.num_latent_actions
-    if P >= args.window_size:
+    if P >= cfg.window_size:
         raise DataMismatchError(f"delta_psnr: the checkpoint's num_prompt_frames {P} leaves no frame to generate in "
-                                f"windows of {args.window_size} frames")
-    if args.stall_ratio is not None and P < 2:
+                                f"windows of {cfg.window_size} frames")
+    if model.decoding.stall_ratio is not None and P < 2:
         raise DataMismatchError(f"delta_psnr with --stall_ratio: the checkpoint's num_prompt_frames {P} gives no "
                                 f"prompt motion to compare with (needs >= 2)")
-    kwargs = dict(**sampler_kwargs(args), control=True, stall_ratio=args.stall_ratio)
+    kwargs = dict(**model.decoding.sampler_kwargs(), control=True, stall_ratio=model.decoding.stall_ratio)
     # per seed, the same sampling noise in both runs: only the latent actions differ
     generators = [[torch.Generator(device=device).manual_seed(seed) for _ in range(2)] for seed in seeds]
     random_actions = [torch.Generator().manual_seed(seed + 1) for seed in seeds]
@@ -557,7 +471,7 @@ def delta_psnr(model: STMaskGIT, loader, args: argparse.Namespace, device: torch
     for batch in tqdm(loader, desc="delta_psnr", unit="batch", file=sys.stderr):
         x_BTHW = batch["tokens"].to(device)
         B, T = x_BTHW.shape[:2]
-        actions_BTD, latent_BT = batch_actions(model, batch, device, args)
+        actions_BTD, latent_BT = batch_actions(model, batch, device, cfg)
         if actions_BTD is not None:
             actions_BTD = actions_BTD.clone()
             actions_BTD[:, P:] = float("nan")  # unknown after the prompt

@@ -1,8 +1,8 @@
 """Split a rollout's per-window scores by what the walker does in each window's future
-(`python -m evaluation.diagnostics breakdown`, evaluation/diagnostics.py).
+(`python diagnose.py breakdown`, evaluation/diagnostics.py).
 
-    python -m evaluation.diagnostics per_window ... --per_window_out windows.jsonl
-    python -m evaluation.diagnostics breakdown windows.jsonl --val_data_dir data/unseen2/val --column 1
+    python diagnose.py per_window ... --per_window_out windows.jsonl
+    python diagnose.py breakdown windows.jsonl --val_data_dir data/unseen2/val --column 1
 
 Each window of a --per_window_out file is placed by one number: the mean absolute value of one action column over
 its generated frames (each row the mean over its window step, as the models with `action_step_mean` see it; column 1
@@ -30,7 +30,7 @@ class BreakdownError(InputError):
 def read_per_window(path) -> List[dict]:
     path = Path(path)
     if not path.is_file():
-        raise BreakdownError(f"{path}: no such file (write it with python -m evaluation.diagnostics per_window "
+        raise BreakdownError(f"{path}: no such file (write it with python diagnose.py per_window "
                              f"--per_window_out)")
     lines = []
     for number, text in enumerate(path.read_text().splitlines(), start=1):
@@ -41,7 +41,7 @@ def read_per_window(path) -> List[dict]:
         missing = {"window", "first_frame", "rollout_psnr", "hold_psnr"} - set(line)
         if missing:
             raise BreakdownError(f"{path}, line {number}: lacks {sorted(missing)}; is it a --per_window_out "
-                                 f"file of python -m evaluation.diagnostics?")
+                                 f"file of python diagnose.py?")
         lines.append(line)
     if not lines:
         raise BreakdownError(f"{path}: no windows")

@@ -17,9 +17,11 @@ from pathlib import Path
 from typing import Optional
 
 from common.config import ConfigError, dataclass_from_dict, load_json
-from genie.sampling import UNMASK_MODES
 
 DECODING_NAME = "decoding.json"
+# which tokens each MaskGIT step reveals (genie.sampling.maskgit_sample): at random (the published way), or the most
+# confident ones
+UNMASK_MODES = ("random", "greedy")
 # how greedy decoding (temperature 0) picks each token of a model with a copy head: choice -> what it does
 GREEDY_TOKEN_CHOICES = {
     "joint": "the most probable whole token of the mixture",
@@ -33,7 +35,7 @@ class DecodingConfig:
     """The sampler's settings. Defaults are the published code's decoding.
 
     maskgit_steps: MaskGIT steps per frame. temperature: divides the logits; 0 is greedy (argmax). unmask_mode:
-    which tokens each step reveals (genie.sampling.UNMASK_MODES). copy_bias: models with a copy head only, added to
+    which tokens each step reveals (UNMASK_MODES). copy_bias: models with a copy head only, added to
     every previous-frame neighbour's score (e^bias times its weight); 0 is the model as trained. greedy_tokens: how
     greedy decoding of a copy head's mixture picks a token (GREEDY_TOKEN_CHOICES). stall_ratio: free-running futures
     only, off when None: once a generated frame changes at most this share of what the prompt's frames change per

@@ -10,7 +10,8 @@ from typing import Optional, Tuple
 import torch
 from einops import rearrange
 
-from genie.copy_head import LOGITS_LAYOUT, Prediction, previous_frames
+from genie.copy_head import LOGITS_LAYOUT, Prediction
+from genie.model import action_embeds, check_tokens
 from genie.sampling import GREEDY_TEMPERATURE, maskgit_sample
 from genie.transformer import TemporalKVCache, TemporalMode
 
@@ -28,18 +29,17 @@ def run_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: Temporal
     mode APPEND / PREFILL: the frames follow the cached ones (first_frame == kv_cache.length); `commit` of them
     (from the first) are then kept in the cache. TARGETS: teacher-forced targets, frame first_frame + i attends to
     cached frames < first_frame + i and to itself (the cache holds frames 0..T-1 and first_frame is 1).
-    cond_BTC: action embeddings of these T frames (B, T, C), `model.action_embeds` of the window sliced to them.
+    cond_BTC: action embeddings of these T frames (B, T, C), `action_embeds` of the window sliced to them.
     Returns factored logits (B, V, F, T, H, W), or None in PREFILL mode; with_mode: a `Prediction` of them with
     the model's greedy tokens and their probabilities (B, T, H, W) where those are not the factor-wise argmax
-    (greedy=False: without them, for a sampler at a temperature; `STMaskGIT.predict`).
+    (greedy=False: without them, for a sampler at a temperature; `STMaskGIT.predict_frames`).
     Inputs are not checked (ids the sampler produced: no device sync per step); `check_frames` does that.
     """
-    sources_BTSK = _copy_sources(model, x_BTHW, first_frame, mode, kv_cache)
-    x_BTSC = model.hidden_states(x_BTHW, cond_BTC, first_frame, mode, kv_cache, sources_BTSK)
+    prediction = model.predict_frames(x_BTHW, cond_BTC, first_frame, mode, kv_cache, with_mode, greedy)
     kv_cache.commit(commit, x_BTHW)
-    if x_BTSC is None:
-        return None
-    return model.frames_prediction(x_BTSC, sources_BTSK, with_mode, greedy)
+    if prediction is None or with_mode:
+        return prediction
+    return prediction.logits
 
 
 def frame_slice(prediction: Prediction, index) -> Prediction:
@@ -48,22 +48,10 @@ def frame_slice(prediction: Prediction, index) -> Prediction:
     return prediction.map(lambda v: v[:, :, :, index], lambda v: v[:, index])
 
 
-def _copy_sources(model, x_BTHW: torch.Tensor, first_frame: int, mode: TemporalMode,
-                  kv_cache: TemporalKVCache) -> Optional[torch.Tensor]:
-    """The copy head's sources (B, T, S, K) of run_frames' frames, from the frame before each; None without a copy
-    head or when nothing reads them (a PREFILL pass has no readout, so only the match input needs them)."""
-    if model.copy_head is None or (mode is TemporalMode.PREFILL and not model.config.copy_match_input):
-        return None
-    if mode is TemporalMode.TARGETS:  # target first_frame + i follows cached frame first_frame + i - 1
-        return model.copy_sources(kv_cache.frames(first_frame - 1, first_frame - 1 + x_BTHW.shape[1]))
-    before = kv_cache.frames(first_frame - 1, first_frame)[:, 0] if first_frame > 0 else None
-    return model.copy_sources(previous_frames(x_BTHW, model.mask_token_id, before))
-
-
 def check_frames(model, x_BTHW: torch.Tensor, first_frame: int, kv_cache: TemporalKVCache, mode: TemporalMode,
                  cond_BTC: Optional[torch.Tensor] = None) -> None:
     """Clear errors for a `run_frames` call whose frames, cache and mode do not fit together."""
-    model.check_tokens(x_BTHW, first_frame)
+    check_tokens(model.config, x_BTHW, first_frame)
     if cond_BTC is not None and cond_BTC.shape[:2] != x_BTHW.shape[:2]:
         raise ValueError(f"cond_BTC {tuple(cond_BTC.shape)} does not match the frames {tuple(x_BTHW.shape)}")
     T = x_BTHW.shape[1]
@@ -93,8 +81,8 @@ def generation_inputs(model, prompt_BTHW: torch.Tensor, num_new_frames: int, act
     if total > model.config.T:
         raise ValueError(f"cannot generate up to frame {total - 1}: the model has position embeddings for "
                          f"T = {model.config.T} frames (prompt {T0} + {num_new_frames} new > {model.config.T})")
-    model.check_tokens(prompt_BTHW)
-    cond_BTC = model.action_embeds(B, total, actions, latent_actions, total if control else T0)
+    check_tokens(model.config, prompt_BTHW)
+    cond_BTC = action_embeds(model, B, total, actions, latent_actions, total if control else T0)
     tokens_BTHW = torch.cat([prompt_BTHW, torch.full_like(prompt_BTHW[:, :1], model.mask_token_id)
                              .expand(-1, num_new_frames, -1, -1)], dim=1)
     return cond_BTC, tokens_BTHW
@@ -170,7 +158,7 @@ def hold_stalled(frame_BHW: torch.Tensor, before_BHW: torch.Tensor, stalled_B: t
 def check_teacher_forced(model, x_BTHW: torch.Tensor) -> None:
     if x_BTHW.dim() == 4 and x_BTHW.shape[1] < 2:
         raise ValueError(f"teacher forcing needs windows of at least 2 frames, got {x_BTHW.shape[1]}")
-    model.check_tokens(x_BTHW)
+    check_tokens(model.config, x_BTHW)
 
 
 def target_action_embeds(model, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor],
@@ -179,8 +167,8 @@ def target_action_embeds(model, x_BTHW: torch.Tensor, actions: Optional[torch.Te
     every target that sees them) know all their rows; target t knows rows < t, the real action of frame t-1 but
     not the latent action inferred from frame t itself."""
     B, T = x_BTHW.shape[:2]
-    return (model.action_embeds(B, T, actions, latent_actions, T),
-            model.action_embeds(B, T, actions, latent_actions, torch.arange(T)))
+    return (action_embeds(model, B, T, actions, latent_actions, T),
+            action_embeds(model, B, T, actions, latent_actions, torch.arange(T)))
 
 
 @torch.no_grad()
@@ -255,7 +243,7 @@ def window_inputs(model, tokens_nHW: torch.Tensor, actions_nD: Optional[torch.Te
         actions_BTD = torch.cat([actions_nD, torch.full_like(actions_nD[:1], float("nan"))])[None].to(
             tokens_nHW.device)
     latent_BT = latent_n[None].to(tokens_nHW.device) if config.num_latent_actions else None
-    return window_BTHW, model.action_embeds(1, n + 1, actions_BTD, latent_BT, n + 1)
+    return window_BTHW, action_embeds(model, 1, n + 1, actions_BTD, latent_BT, n + 1)
 
 
 @torch.no_grad()

@@ -6,9 +6,10 @@ Opt-in (config.copy_radius): the readout is mixed with a pointer to the previous
 whose "logits" are then log-probabilities; every path that reads out passes the frame before each frame for it.
 Parameter names, shapes and math follow docs/formats.md §3.
 
-The model owns its training loss (`forward`, so that DDP sees one call): factored cross entropy over the masked
-tokens of a collated batch (training/masking.py), read out at those tokens only. Inference is genie/inference.py, the
-uncached reference versions genie/reference.py, checkpoint files genie/checkpoint.py.
+Predictions leave the model one of three ways: `forward`, its training loss (so that DDP sees one call): factored
+cross entropy over the masked tokens of a collated batch (training/masking.py), read out at those tokens only;
+`logits`, of a window, its inputs checked; and `predict_frames`, what the samplers read (genie/inference.py, with the
+temporal KV cache; the uncached reference versions genie/reference.py). Checkpoint files are genie/checkpoint.py.
 """
 import math
 from dataclasses import dataclass, fields
@@ -20,6 +21,7 @@ from einops import rearrange
 from huggingface_hub import PyTorchModelHubMixin
 from torch import nn
 
+from common.config import ConfigError
 from genie import checkpoint
 from genie.actions import ActionConditioning
 from genie.config import GenieConfig, TrainingRecipe
@@ -118,69 +120,6 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         with torch.no_grad():
             self.pos_embed_TSC.copy_(sincos_pos_embed(self.config.T, self.config.S, self.config.d_model))
 
-    # ---------------------------------------------------------------- the network
-    def check_tokens(self, x_BTHW: torch.Tensor, first_frame: int = 0) -> None:
-        """Clear errors for token ids that do not fit the model (shape, frame range, dtype, id range)."""
-        if x_BTHW.dim() != 4 or x_BTHW.shape[2] * x_BTHW.shape[3] != self.config.S:
-            raise ValueError(f"expected token ids of shape (B, T, H, W) with H*W = S = {self.config.S}, "
-                             f"got {tuple(x_BTHW.shape)}")
-        if first_frame + x_BTHW.shape[1] > self.config.T:
-            raise ValueError(f"frames {first_frame}..{first_frame + x_BTHW.shape[1] - 1} requested, but the model "
-                             f"has position embeddings for T = {self.config.T} frames only")
-        if x_BTHW.is_floating_point():
-            raise ValueError(f"token ids must be integers, got {x_BTHW.dtype}")
-        if ((x_BTHW < 0) | (x_BTHW > self.mask_token_id)).any():
-            raise ValueError(f"token ids must be in [0, {self.config.image_vocab_size}) or the mask token "
-                             f"{self.mask_token_id}; got values in [{x_BTHW.min().item()}, {x_BTHW.max().item()}]")
-
-    def action_embeds(self, B: int, T: int, actions: Optional[torch.Tensor] = None,
-                      latent_actions: Optional[torch.Tensor] = None,
-                      known_T: Union[int, torch.Tensor, None] = None) -> Optional[torch.Tensor]:
-        """Action embeddings (B, T, C) of window frames 0..T-1, or None for a model without action inputs.
-
-        actions (B, T, D) float, latent_actions (B, T) ids: per-frame rows as in the dataset (genie/actions.py).
-        known_T: how many leading rows each frame may use (int or (T,)); None: all of them.
-        A model without action inputs raises when given actions.
-        """
-        if self.action_cond is None:
-            if actions is not None or latent_actions is not None:
-                raise ValueError("this model has no action inputs (its config sets neither action_names nor "
-                                 "num_latent_actions); do not pass actions or latent_actions")
-            return None
-        self.action_cond.check_inputs(actions, latent_actions, B, T)
-        device = self.pos_embed_TSC.device
-        return self.action_cond(B, T, actions, latent_actions, T if known_T is None else known_T, device)
-
-    def hidden_states(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None, first_frame: int = 0,
-                      mode: TemporalMode = TemporalMode.CAUSAL,
-                      kv_cache: Optional[TemporalKVCache] = None,
-                      sources_BTSK: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
-        """Frames first_frame.. (B, T, H, W) -> final hidden states (B, T, S, C), before the readout.
-
-        cond_BTC: action embeddings of these frames (B, T, C) or None. mode / kv_cache: how the frames attend over
-        time (genie/transformer.py TemporalMode); PREFILL only fills the cache and returns None.
-        sources_BTSK: `copy_sources` of these frames; required when the config sets copy_match_input.
-        """
-        T = x_BTHW.shape[1]
-        x_BTSC = (self.token_embed(rearrange(x_BTHW, "B T H W -> B T (H W)"))
-                  + self.pos_embed_TSC[:, first_frame:first_frame + T])
-        if self.config.copy_match_input:
-            if sources_BTSK is None:
-                raise ValueError("this model embeds previous-frame matches (copy_match_input): pass copy_sources")
-            x_BTSC = x_BTSC + self.copy_head.match_embedding(x_BTHW, sources_BTSK).to(x_BTSC.dtype)
-        if cond_BTC is not None:
-            x_BTSC = x_BTSC + cond_BTC.unsqueeze(2).to(x_BTSC.dtype)
-        return self.decoder(x_BTSC, mode, kv_cache, first_frame)
-
-    def copy_sources(self, prev_BTHW: torch.Tensor) -> Optional[torch.Tensor]:
-        """Tokens of the frame before each frame (B, T, H, W) (mask_token_id where unknown) -> what the copy head
-        may copy at each position (B, T, S, K); None for a model without one (the published layout)."""
-        return None if self.copy_head is None else self.copy_head.sources(prev_BTHW)
-
-    def window_copy_sources(self, x_BTHW: torch.Tensor) -> Optional[torch.Tensor]:
-        """`copy_sources` of a window's own frames (B, T, H, W), frame 0 with no frame before it."""
-        return None if self.copy_head is None else self.copy_sources(previous_frames(x_BTHW, self.mask_token_id))
-
     def set_decoding(self, decoding: DecodingConfig) -> None:
         """Sample this model with `decoding` from now on (genie/decoding.py; saved with the checkpoint as
         decoding.json). Of its fields the model itself applies those of a copy head: copy_bias, added to the score
@@ -189,31 +128,88 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         tokens ("joint": its most probable whole token; "best_neighbour": a copy takes the single most weighted
         neighbour's token, `CopyHead.mode`). The samplers read the rest from `model.decoding`."""
         if self.copy_head is None and decoding.copy_bias:
-            raise ValueError("copy_bias needs a model with a copy head (config.copy_radius); this one has none")
+            raise ConfigError("copy_bias needs a model with a copy head (config.copy_radius); this one has none")
         if self.copy_head is not None:
             self.copy_head.copy_bias = decoding.copy_bias
             self.copy_head.best_neighbour_copies = decoding.greedy_tokens == "best_neighbour"
         self.decoding = decoding
 
-    def readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """Hidden states (..., C) -> factored logits (..., V, F).
+    # ---------------------------------------------------------------- predictions
+    def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
+               latent_actions: Optional[torch.Tensor] = None,
+               known_T: Union[int, torch.Tensor, None] = None) -> torch.Tensor:
+        """Token ids of frames 0..T-1 (B, T, H, W), T <= config.T -> factored logits (B, V, F, T, H, W).
 
-        sources_NK (..., K): `copy_sources` at the same positions, required when the model has a copy head (its
-        logits are then log-probabilities of the mixture, genie/copy_head.py)."""
-        return self.predict(x_NC, sources_NK, with_mode=False).logits
+        actions / latent_actions / known_T: per-frame action inputs, see `action_embeds`.
+        """
+        check_tokens(self.config, x_BTHW)
+        B, T = x_BTHW.shape[:2]
+        return self.predict_frames(x_BTHW, action_embeds(self, B, T, actions, latent_actions, known_T),
+                                   with_mode=False).logits
 
-    def predict(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None,
-                with_mode: bool = True, greedy: bool = True) -> Prediction:
-        """`readout`, plus, for a copy head's mixture (with_mode), what decoding takes instead of the factor-wise
-        logits: the most probable whole tokens (...) and their probabilities (...) (`CopyHead.mode`) and the
-        mixture's parts, from which a sampler at a temperature draws whole tokens. The mode is computed only when
-        greedy decoding reads it: not for greedy=False (a sampler at a temperature)."""
+    def predict_frames(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None, first_frame: int = 0,
+                       mode: TemporalMode = TemporalMode.CAUSAL, kv_cache: Optional[TemporalKVCache] = None,
+                       with_mode: bool = True, greedy: bool = True) -> Optional[Prediction]:
+        """Frames first_frame.. (B, T, H, W) -> a `Prediction` of them (what the samplers read, genie/inference.py):
+        factored logits (B, V, F, T, H, W) and, for a copy head's mixture, the greedy tokens and their probabilities
+        (B, T, H, W) (not with greedy=False: a sampler at a temperature does not read them, `CopyHead.mode`) and the
+        mixture's parts ((B, T, H, W, K + 1), (B, T, H, W, K), (B, V, F, T, H, W)), None where the model has no
+        such part; with_mode=False: the logits alone.
+
+        cond_BTC: action embeddings of these frames (B, T, C) or None, `action_embeds` of the window sliced to them.
+        mode / kv_cache: how the frames attend over time (genie/transformer.py TemporalMode); the default is a whole
+        window from frame 0 without a cache. PREFILL only writes the cache's keys/values and returns None;
+        committing them is the caller's. Inputs are not checked (`check_tokens`): ids a sampler produced need no
+        device sync per step.
+        """
+        sources_BTSK = self._copy_sources(x_BTHW, first_frame, mode, kv_cache)
+        x_BTSC = self._hidden_states(x_BTHW, cond_BTC, first_frame, mode, kv_cache, sources_BTSK)
+        if x_BTSC is None:
+            return None
+        H = self.config.H
+        return self._readout(x_BTSC, sources_BTSK, with_mode, greedy).map(
+            lambda v: rearrange(v, "B T (H W) V F -> B V F T H W", H=H),
+            lambda v: rearrange(v, "B T (H W) ... -> B T H W ...", H=H))
+
+    def _copy_sources(self, x_BTHW: torch.Tensor, first_frame: int = 0, mode: TemporalMode = TemporalMode.CAUSAL,
+                      kv_cache: Optional[TemporalKVCache] = None) -> Optional[torch.Tensor]:
+        """What the copy head may copy at each position of frames first_frame.. (B, T, H, W): the K neighbours
+        (B, T, S, K) in the frame before each (the cache's committed frames; mask tokens before frame 0). None
+        without a copy head or when nothing reads them (a PREFILL pass has no readout, so only the match input
+        needs them)."""
+        if self.copy_head is None or (mode is TemporalMode.PREFILL and not self.config.copy_match_input):
+            return None
+        if mode is TemporalMode.TARGETS:  # target first_frame + i follows cached frame first_frame + i - 1
+            return self.copy_head.sources(kv_cache.frames(first_frame - 1, first_frame - 1 + x_BTHW.shape[1]))
+        before_BHW = kv_cache.frames(first_frame - 1, first_frame)[:, 0] if first_frame > 0 else None
+        return self.copy_head.sources(previous_frames(x_BTHW, self.mask_token_id, before_BHW))
+
+    def _hidden_states(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None, first_frame: int = 0,
+                       mode: TemporalMode = TemporalMode.CAUSAL, kv_cache: Optional[TemporalKVCache] = None,
+                       sources_BTSK: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+        """Frames first_frame.. (B, T, H, W) -> final hidden states (B, T, S, C), before the readout (None in
+        PREFILL mode). sources_BTSK: `_copy_sources` of these frames, embedded when the config sets
+        copy_match_input."""
+        T = x_BTHW.shape[1]
+        x_BTSC = (self.token_embed(rearrange(x_BTHW, "B T H W -> B T (H W)"))
+                  + self.pos_embed_TSC[:, first_frame:first_frame + T])
+        if self.config.copy_match_input:
+            x_BTSC = x_BTSC + self.copy_head.match_embedding(x_BTHW, sources_BTSK).to(x_BTSC.dtype)
+        if cond_BTC is not None:
+            x_BTSC = x_BTSC + cond_BTC.unsqueeze(2).to(x_BTSC.dtype)
+        return self.decoder(x_BTSC, mode, kv_cache, first_frame)
+
+    def _readout(self, x_NC: torch.Tensor, sources_NK: Optional[torch.Tensor] = None, with_mode: bool = True,
+                 greedy: bool = True) -> Prediction:
+        """Hidden states (..., C) -> a `Prediction` at the same positions: factored logits (..., V, F) (for a copy
+        head, log-probabilities of the mixture with the neighbours sources_NK (..., K), genie/copy_head.py) and,
+        with_mode, what decoding the mixture reads instead of the factor-wise logits: the most probable whole
+        tokens (...) and their probabilities (...) (only when greedy decoding reads them: greedy=True) and the
+        mixture's parts, from which a sampler at a temperature draws whole tokens."""
         x_scaled = x_NC if self.readout_width_mult is None else x_NC / self.readout_width_mult
         logits = rearrange(self.out_x_proj(x_scaled), "... (F V) -> ... V F", F=self.config.num_factored_vocabs)
         if self.copy_head is None:
             return Prediction(logits)
-        if sources_NK is None:
-            raise ValueError("this model copies from the previous frame (copy_radius is set): pass copy_sources")
         if not with_mode:
             return Prediction(self.copy_head(logits, x_NC, sources_NK))
         ids = probs = None
@@ -223,70 +219,40 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
             mixture, log_weights = self.copy_head.forward_and_log_weights(logits, x_NC, sources_NK)
         return Prediction(mixture, ids, probs, log_weights, sources_NK, logits)
 
-    def logits(self, x_BTHW: torch.Tensor, actions: Optional[torch.Tensor] = None,
-               latent_actions: Optional[torch.Tensor] = None,
-               known_T: Union[int, torch.Tensor, None] = None) -> torch.Tensor:
-        """Token ids of frames 0..T-1 (B, T, H, W), T <= config.T -> factored logits (B, V, F, T, H, W).
-
-        actions / latent_actions / known_T: per-frame action inputs, see `action_embeds`.
-        """
-        self.check_tokens(x_BTHW)
-        B, T = x_BTHW.shape[:2]
-        return self.logits_unchecked(x_BTHW, self.action_embeds(B, T, actions, latent_actions, known_T))
-
-    def logits_unchecked(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor] = None,
-                         with_mode: bool = False):
-        """`logits` without input checks, with precomputed action embeddings (B, T, C) or None; with_mode: a
-        `Prediction` of them (`frames_prediction`)."""
-        sources_BTSK = self.window_copy_sources(x_BTHW)
-        return self.frames_prediction(self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK), sources_BTSK,
-                                      with_mode)
-
-    def frames_prediction(self, x_BTSC: torch.Tensor, sources_BTSK: Optional[torch.Tensor],
-                          with_mode: bool = False, greedy: bool = True):
-        """Final hidden states (B, T, S, C) -> factored logits (B, V, F, T, H, W); with_mode: a `Prediction` of
-        them, with the greedy tokens and their probabilities (B, T, H, W) (unless greedy=False, `predict`) and the
-        copy mixture's parts ((B, T, H, W, K + 1), (B, T, H, W, K), (B, V, F, T, H, W)) where the model has them
-        (else None)."""
-        H = self.config.H
-        prediction = self.predict(x_BTSC, sources_BTSK, with_mode, greedy).map(
-            lambda v: rearrange(v, "B T (H W) V F -> B V F T H W", H=H),
-            lambda v: rearrange(v, "B T (H W) ... -> B T H W ...", H=H))
-        return prediction if with_mode else prediction.logits
-
     # ---------------------------------------------------------------- the training loss
     def forward(self, batch: MaskGITBatch, recipe: Optional[TrainingRecipe] = None) -> LossOutput:
         """Factored CE and accuracy over the masked tokens of frames 1..T-1 of a collated batch (B, T, H, W), read
         out at those tokens only (the (F*V)-wide logits of every other token are most of a small model's step;
         genie/reference.py computes the same loss from every token's logits). In training mode a share
         recipe.self_reveal_ratio of the examples first has part of its masked tokens filled with the model's own
-        guesses (`reveal_own_predictions`); recipe None: the published recipe (no self-reveal)."""
+        guesses (`_reveal_own_predictions`); recipe None: the published recipe (no self-reveal)."""
         x_BTHW, labels_BTHW = batch.input_ids, batch.labels
-        self.check_tokens(x_BTHW)
+        check_tokens(self.config, x_BTHW)
         B, T = x_BTHW.shape[:2]
-        cond_BTC = self.action_embeds(B, T, batch.actions, batch.latent_actions)
+        cond_BTC = action_embeds(self, B, T, batch.actions, batch.latent_actions)
         self_reveal_ratio = (recipe or TrainingRecipe()).self_reveal_ratio
         if self.training and self_reveal_ratio > 0:
-            x_BTHW = self.reveal_own_predictions(x_BTHW, cond_BTC, self_reveal_ratio)
+            x_BTHW = self._reveal_own_predictions(x_BTHW, cond_BTC, self_reveal_ratio)
         relevant_BTS = rearrange(x_BTHW == self.mask_token_id, "B T H W -> B T (H W)")
         relevant_BTS[:, 0] = False  # frame 0 is always given
-        factored_NVF = self.readout_at(x_BTHW, cond_BTC, relevant_BTS)
+        factored_NVF = self._readout_at(x_BTHW, cond_BTC, relevant_BTS)
         targets_N = rearrange(labels_BTHW, "B T H W -> B T (H W)")[relevant_BTS]
         num_relevant = max(targets_N.numel(), 1)
         return LossOutput(loss=factored_cross_entropy(factored_NVF, targets_N).sum() / num_relevant,
                           acc=factored_argmax_correct(factored_NVF, targets_N).sum().float() / num_relevant)
 
-    def readout_at(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
-                   where_BTS: torch.Tensor) -> torch.Tensor:
+    def _readout_at(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
+                    where_BTS: torch.Tensor) -> torch.Tensor:
         """Factored logits (N, V, F) of the N positions `where_BTS` (B, T, S) of a window's frames x_BTHW (B, T, H, W)
         with action embeddings cond_BTC, read out there only."""
-        sources_BTSK = self.window_copy_sources(x_BTHW)
-        x_BTSC = self.hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
-        return self.readout(x_BTSC[where_BTS], None if sources_BTSK is None else sources_BTSK[where_BTS])
+        sources_BTSK = self._copy_sources(x_BTHW)
+        x_BTSC = self._hidden_states(x_BTHW, cond_BTC, sources_BTSK=sources_BTSK)
+        return self._readout(x_BTSC[where_BTS], None if sources_BTSK is None else sources_BTSK[where_BTS],
+                             with_mode=False).logits
 
     @torch.no_grad()
-    def reveal_own_predictions(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
-                               ratio: float) -> torch.Tensor:
+    def _reveal_own_predictions(self, x_BTHW: torch.Tensor, cond_BTC: Optional[torch.Tensor],
+                                ratio: float) -> torch.Tensor:
         """Training inputs (B, T, H, W) as a later MaskGIT step sees them: for a share `ratio` of the examples, a
         random share 1 - cos(pi/2 u), u ~ U(0, 1), of each frame's masked tokens is filled with the model's own
         one-pass prediction (each factor's argmax; one extra pass without gradients).
@@ -301,8 +267,8 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         x_bTHW = x_BTHW[chosen_B]  # a copy
         masked_bTHW = x_bTHW == self.mask_token_id
         masked_bTHW[:, 0] = False
-        logits_NVF = self.readout_at(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B],
-                                     rearrange(masked_bTHW, "b T H W -> b T (H W)"))
+        logits_NVF = self._readout_at(x_bTHW, None if cond_BTC is None else cond_BTC[chosen_B],
+                                      rearrange(masked_bTHW, "b T H W -> b T (H W)"))
         guesses_N = unfactorize_token_ids(logits_NVF.float().argmax(dim=1), self.config.num_factored_vocabs,
                                           self.config.factored_vocab_size)
         # 1 - MaskGIT's cosine schedule (genie.sampling.cosine_schedule) at a uniform progress
@@ -340,6 +306,42 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
         checkpoint.load_weights(model, checkpoint_dir, map_location)
         model.set_decoding(load_decoding(checkpoint_dir))
         return model.eval()
+
+
+# ---------------------------------------------------------------- inputs (shared with genie/inference.py)
+def check_tokens(config: GenieConfig, x_BTHW: torch.Tensor, first_frame: int = 0) -> None:
+    """Clear errors for token ids (B, T, H, W) of frames first_frame.. that do not fit the model of `config`
+    (shape, frame range, dtype, id range)."""
+    if x_BTHW.dim() != 4 or x_BTHW.shape[2] * x_BTHW.shape[3] != config.S:
+        raise ValueError(f"expected token ids of shape (B, T, H, W) with H*W = S = {config.S}, "
+                         f"got {tuple(x_BTHW.shape)}")
+    if first_frame + x_BTHW.shape[1] > config.T:
+        raise ValueError(f"frames {first_frame}..{first_frame + x_BTHW.shape[1] - 1} requested, but the model "
+                         f"has position embeddings for T = {config.T} frames only")
+    if x_BTHW.is_floating_point():
+        raise ValueError(f"token ids must be integers, got {x_BTHW.dtype}")
+    if ((x_BTHW < 0) | (x_BTHW > config.mask_token_id)).any():
+        raise ValueError(f"token ids must be in [0, {config.image_vocab_size}) or the mask token "
+                         f"{config.mask_token_id}; got values in [{x_BTHW.min().item()}, {x_BTHW.max().item()}]")
+
+
+def action_embeds(model: STMaskGIT, B: int, T: int, actions: Optional[torch.Tensor] = None,
+                  latent_actions: Optional[torch.Tensor] = None,
+                  known_T: Union[int, torch.Tensor, None] = None) -> Optional[torch.Tensor]:
+    """Action embeddings (B, T, C) of window frames 0..T-1, or None for a model without action inputs.
+
+    actions (B, T, D) float, latent_actions (B, T) ids: per-frame rows as in the dataset (genie/actions.py).
+    known_T: how many leading rows each frame may use (int or (T,)); None: all of them.
+    A model without action inputs raises when given actions.
+    """
+    if model.action_cond is None:
+        if actions is not None or latent_actions is not None:
+            raise ValueError("this model has no action inputs (its config sets neither action_names nor "
+                             "num_latent_actions); do not pass actions or latent_actions")
+        return None
+    model.action_cond.check_inputs(actions, latent_actions, B, T)
+    device = model.pos_embed_TSC.device
+    return model.action_cond(B, T, actions, latent_actions, T if known_T is None else known_T, device)
 
 
 def sincos_pos_embed(T: int, S: int, d_model: int, std: float = 0.02) -> torch.Tensor:

@@ -3,8 +3,8 @@ that genie/inference.py and the loss of genie/model.py are tested against and be
 the copy head's mixture written out densely (genie/copy_head.py is tested against it, benchmarks/bench_copy_head.py
 compares their speed).
 
-Every MaskGIT step recomputes the whole window through `STMaskGIT.logits`, frames not yet known set to the mask
-token; the loss reads out the logits of every token.
+Every MaskGIT step recomputes the whole window through `STMaskGIT.predict_frames` without a cache, frames not yet
+known set to the mask token; the loss reads out the logits of every token.
 """
 from typing import Optional, Tuple
 
@@ -16,7 +16,7 @@ from genie.factorization import factorize_token_ids
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
 from genie.inference import (check_teacher_forced, frame_slice, generation_inputs, sample_targets, stack_frames,
                              targets_to_frames, window_inputs)
-from genie.model import LossOutput, MaskGITBatch
+from genie.model import LossOutput, MaskGITBatch, action_embeds
 from genie.sampling import maskgit_sample
 
 
@@ -46,7 +46,7 @@ def generate_uncached(model, prompt_BTHW: torch.Tensor, num_new_frames: int, mas
         def logits_fn(frame_BHW):
             window_BTHW = tokens_BTHW.clone()
             window_BTHW[:, t] = frame_BHW
-            return frame_slice(model.logits_unchecked(window_BTHW, cond_BTC, with_mode=True), t)
+            return frame_slice(model.predict_frames(window_BTHW, cond_BTC), t)
 
         sample_BHW, logits_BVFHW = maskgit_sample(logits_fn, tokens_BTHW[:, t], model.mask_token_id, maskgit_steps,
                                                   temperature, unmask_mode, generator)
@@ -67,7 +67,7 @@ def next_frame_recomputed(model, tokens_nHW: torch.Tensor, actions_nD: Optional[
     def logits_fn(frame_BHW):
         current_BTHW = window_BTHW.clone()
         current_BTHW[:, n] = frame_BHW
-        return frame_slice(model.logits_unchecked(current_BTHW, cond_BTC, with_mode=True), n)
+        return frame_slice(model.predict_frames(current_BTHW, cond_BTC), n)
 
     frame_BHW, _ = maskgit_sample(logits_fn, window_BTHW[:, n], model.mask_token_id, maskgit_steps, temperature,
                                   "random", generator)
@@ -91,8 +91,8 @@ def teacher_forced_uncached(model, x_BTHW: torch.Tensor, maskgit_steps: int = 2,
             window_BTHW = x_BTHW.clone()
             window_BTHW[:, t] = frames_BnHW[:, t - 1]
             window_BTHW[:, t + 1:] = model.mask_token_id
-            cond_BTC = model.action_embeds(B, T, actions, latent_actions, t)
-            per_target.append(frame_slice(model.logits_unchecked(window_BTHW, cond_BTC, with_mode=True), t))
+            cond_BTC = action_embeds(model, B, T, actions, latent_actions, t)
+            per_target.append(frame_slice(model.predict_frames(window_BTHW, cond_BTC), t))
         return targets_to_frames(stack_frames(per_target))
 
     return sample_targets(model, logits_fn, B, T, x_BTHW, maskgit_steps, temperature, unmask_mode, generator)

@@ -12,9 +12,9 @@ import torch
 from einops import rearrange
 
 from genie.copy_head import Prediction
+from genie.decoding import UNMASK_MODES
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
 
-UNMASK_MODES = ("random", "greedy")
 GREEDY_TEMPERATURE = 1e-8  # at or below this temperature, sampling is argmax
 
 

@@ -160,14 +160,15 @@ def build_app(session: PlaySession):
 def make_session(checkpoint_dir, data_dir: Optional[str] = None, tokenizer_ckpt: Optional[str] = None,
                  device: str = "cpu", decoding=None, prompt_frames: Optional[int] = None, real_world: bool = True,
                  seed: int = 0) -> PlaySession:
-    """A session of the model in checkpoint_dir (decoding as its checkpoint says unless `decoding`, a
-    genie.decoding.DecodingConfig, is given), starting from data_dir's windows, with the real sample world beside it
-    when `real_world` and there is one; reset to its first start (drawn with `seed`)."""
+    """A session of the model in checkpoint_dir (decoding as its checkpoint says, with the values of `decoding`, a
+    dict of genie.decoding.DecodingConfig fields, instead where given), starting from data_dir's windows, with the
+    real sample world beside it when `real_world` and there is one; reset to its first start (drawn with `seed`)."""
     from envs.pairing import real_world_for
     from envs.world_model import WorldModelEnv
 
-    env = WorldModelEnv.from_checkpoint(checkpoint_dir, data_dir, tokenizer_ckpt, device=device, decoding=decoding,
+    env = WorldModelEnv.from_checkpoint(checkpoint_dir, data_dir, tokenizer_ckpt, device=device,
                                         prompt_frames=prompt_frames)
+    env.model.set_decoding(env.model.decoding.override(**(decoding or {})))
     real_env, raw_npz = real_world_for(env, data_dir) if real_world else (None, "--no_real_world")
     if real_env is None:
         logger.info("no real world beside the model: %s", raw_npz)

@@ -22,7 +22,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from common.errors import InputError
-from sample_world.render import BUTTON_NAMES, STEP_TICS
+from sample_world.render import BUTTON_NAMES, STEP_TICS, ButtonsError, buttons_from_names
 # the macro actions a cloned policy chooses between (held buttons), the explorer's own plus standing still
 MACROS = ((), ("MOVE_FORWARD",), ("MOVE_FORWARD", "TURN_LEFT"), ("MOVE_FORWARD", "TURN_RIGHT"), ("TURN_LEFT",),
           ("TURN_RIGHT",), ("MOVE_BACKWARD",), ("MOVE_FORWARD", "USE"))
@@ -38,11 +38,9 @@ class PolicyError(InputError):
 def check_action(action, name: str) -> np.ndarray:
     """A policy's answer -> the held buttons as a 0/1 vector in BUTTON_NAMES order; clear error for anything
     else."""
-    from envs.doom import EnvInputError, buttons_from_names
-
     try:
         return buttons_from_names(action)
-    except EnvInputError as e:
+    except ButtonsError as e:
         raise PolicyError(f"policy {name}: act() returned no buttons it could hold: {e}") from None
 
 

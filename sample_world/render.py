@@ -52,6 +52,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from common.cli import add_hidden_alias, non_negative_int, positive_int, run_main
+from common.errors import InputError
 
 HZ = 35  # Doom's fixed tic rate; we record every tic.
 STEP_TICS = 15  # tics between the frames of a token dataset window (its stride): one step of a player or a policy
@@ -69,6 +70,20 @@ MAX_STEP = 30.0  # map units per tic; Doom caps momentum here, so a longer step 
 GENERATOR_VERSION = 2  # bump when a change in this file changes the generated data
 SIDECAR_NAME = "sample_world.json"
 STALL_TIMEOUT_S = 600.0  # seconds without a finished task before a worker pool is declared stuck (a task: ~5 s)
+
+
+class ButtonsError(InputError):
+    """Button names the sample world does not have."""
+
+
+def buttons_from_names(names: Sequence[str], button_names: Sequence[str] = BUTTON_NAMES) -> np.ndarray:
+    """Held button names (e.g. ["MOVE_FORWARD", "TURN_LEFT"]) -> a 0/1 int8 vector in `button_names` order."""
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise ButtonsError(f"action must be a list of button names, got {names!r}")
+    unknown = [n for n in names if n not in button_names]
+    if unknown:
+        raise ButtonsError(f"unknown button(s) {unknown}: the buttons are {list(button_names)}")
+    return np.array([int(b in names) for b in button_names], dtype=np.int8)
 
 # Macro actions of the explorer: which buttons each one holds (order of BUTTON_NAMES).
 _ACTIONS = {

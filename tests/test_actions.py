@@ -182,7 +182,7 @@ def test_cached_equals_uncached_with_actions(action_dim, num_latent):
     assert torch.equal(runs[0][0], runs[1][0])
     for control in (False, True):
         runs = [run(model, x[:, :2], 3, 2, 1.0, generator=torch.Generator().manual_seed(4), actions=actions,
-                    latent_actions=latent, control=control) for run in (generate, generate_uncached)]
+                    latent_actions=latent, control=control) for run in (generate_frames, generate_uncached)]
         torch.testing.assert_close(runs[0][1], runs[1][1], atol=1e-5, rtol=1e-5)
         assert torch.equal(runs[0][0], runs[1][0])
 
@@ -302,7 +302,7 @@ def test_train_and_rollout_with_step_mean_actions(action_data, tmp_path, capsys,
         calls.append(kwargs)
         return generate_frames(model, prompt_BTHW, num_new_frames, *args, **kwargs)
 
-    monkeypatch.setattr(evaluation.protocols, "generate", spy)
+    monkeypatch.setattr(evaluation.protocols, "generate_frames", spy)
     assert evaluate.main(["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(out / "final_checkpt"),
                           "--window_size", "4", "--stride", "3", "--device", "cpu", "--max_examples", "3",
                           "--tokenizer_ckpt", "stub", "--skip_lpips", "--protocol", "rollout",
@@ -421,7 +421,7 @@ def test_rollout_plays_the_windows_action_rows(action_data, latent_ckpt, capsys,
         calls.append((prompt_BTHW.shape[1], num_new_frames, kwargs))
         return generate_frames(model, prompt_BTHW, num_new_frames, *args, **kwargs)
 
-    monkeypatch.setattr(evaluation.protocols, "generate", spy)
+    monkeypatch.setattr(evaluation.protocols, "generate_frames", spy)
     argv = ["--val_data_dir", str(action_data["val"]), "--checkpoint_dir", str(latent_ckpt), "--window_size", "4",
             "--stride", "1", "--batch_size", "4", "--device", "cpu", "--max_examples", "4", "--tokenizer_ckpt",
             "stub", "--skip_lpips", "--protocol", "rollout", "--num_prompt_frames", "1"]

@@ -8,7 +8,8 @@ import pytest
 
 from common.cli import run_main
 from data import RawTokenDataset, write_token_dataset
-from evaluation.baselines import copy_baseline, factor_match_rate, lookup_baselines, main
+from diagnose import main
+from evaluation.baselines import copy_baseline, factor_match_rate, lookup_baselines
 
 
 def _dataset(path, frames_NHW):
@@ -47,7 +48,7 @@ def test_cli_prints_json(tmp_path, capsys):
     frames = np.random.default_rng(1).integers(0, 16, size=(12, 2, 2))
     _dataset(tmp_path / "t", frames)
     _dataset(tmp_path / "v", frames[::-1].copy())
-    main(["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "v"), "--window_size", "3",
+    main(["baselines", "--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "v"), "--window_size", "3",
           "--stride", "1"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert set(out) >= {"copy_acc", "smoothed_copy_loss", "p", "num_examples", "lookup_acc", "factored_lookup_acc"}
@@ -91,11 +92,11 @@ def test_cli_names_the_bad_input_in_one_line(tmp_path, capsys):
 
     def error(argv):  # stderr's one line of the command, exit status 1
         capsys.readouterr()
-        assert run_main("evaluation.baselines", main, argv) == 1
+        assert run_main("diagnose.py", main, ["baselines", *argv]) == 1
         return capsys.readouterr().err.splitlines()[-1]
 
     missing = ["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "missing"), *args]
-    assert re.match("^evaluation.baselines: error: .*missing: token dataset directory not found", error(missing))
+    assert re.match("^diagnose.py: error: .*missing: token dataset directory not found", error(missing))
     write_token_dataset(tmp_path / "v64", frames, metadata={"vocab_size": 64, "hz": 35})
     assert re.search("t: vocab_size 16 differs from .*v64's 64",
                      error(["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "v64"), *args]))
@@ -103,4 +104,4 @@ def test_cli_names_the_bad_input_in_one_line(tmp_path, capsys):
     assert re.search("t12: vocab_size 12 is not a power of --num_factored_vocabs 2",
                      error(["--train_data_dir", str(tmp_path / "t12"), "--val_data_dir", str(tmp_path / "t12"), *args]))
     with pytest.raises(SystemExit):
-        main(["--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "t"), "--max_examples", "0"])
+        main(["baselines", "--train_data_dir", str(tmp_path / "t"), "--val_data_dir", str(tmp_path / "t"), "--max_examples", "0"])

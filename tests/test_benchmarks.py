@@ -98,8 +98,8 @@ def test_bench_train_runs_an_action_config_under_its_training_recipe(tmp_path, c
               "action_names": ["buttons", "driving_command"], "action_dim": 5, "num_latent_actions": 3}
     (tmp_path / "config.json").write_text(json.dumps(config))
     ratios = []
-    real_reveal = STMaskGIT.reveal_own_predictions
-    monkeypatch.setattr(STMaskGIT, "reveal_own_predictions", lambda model, x, cond, ratio: ratios.append(ratio) or
+    real_reveal = STMaskGIT._reveal_own_predictions
+    monkeypatch.setattr(STMaskGIT, "_reveal_own_predictions", lambda model, x, cond, ratio: ratios.append(ratio) or
                         real_reveal(model, x, cond, ratio))
     bench = load("bench_train")
     bench.main(["--genie_config", str(tmp_path / "config.json"), "--steps", "1", "--warmup_steps", "0"])

@@ -67,7 +67,7 @@ def test_generate_cached_equals_full_recomputation(qk_norm, maskgit_steps):
     prompt = tokens(model, B=2, T=2, seed=2)
     for temperature in ((0.0, 1.0) if maskgit_steps == 2 else (1.0,)):
         runs = [fn(model, prompt, 4, maskgit_steps, temperature, generator=torch.Generator().manual_seed(3))
-                for fn in (generate, generate_uncached)]
+                for fn in (generate_frames, generate_uncached)]
         (cached_tokens, cached_logits), (full_tokens, full_logits) = runs
         assert cached_tokens.shape == (2, 6, 4, 4) and cached_logits.shape == (2, 64, 2, 4, 4, 4)
         assert torch.equal(cached_tokens[:, :2], prompt)
@@ -106,4 +106,4 @@ def test_generation_beyond_position_embeddings_and_bad_cache_use_raise():
     with pytest.raises(ValueError, match="exceed its capacity"):
         run_frames(model, prompt, 0, cache)
     with pytest.raises(ValueError, match="CAUSAL takes no KV cache"):
-        model.hidden_states(prompt, kv_cache=cache)
+        model.predict_frames(prompt, kv_cache=cache)

@@ -1,4 +1,4 @@
-"""python -m evaluation.diagnostics control (evaluation/control_check.py): the horizontal shift by phase correlation, its
+"""python diagnose.py control (evaluation/control_check.py): the horizontal shift by phase correlation, its
 sign convention in the real world, and the check end to end on a tiny model beside a tiny real world."""
 import json
 
@@ -20,7 +20,7 @@ def test_horizontal_shift_finds_a_rolled_image():
 
 
 def test_real_world_turns_shift_the_image_the_documented_way():
-    from data import sample_world as sw
+    from sample_world import render as sw
     from envs.doom import DoomEnv, buttons_from_names
 
     env = DoomEnv(maps=["MAP01"], cfg=sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60))
@@ -44,8 +44,8 @@ def test_summary_counts_starts_where_the_controls_show():
 
 def test_control_runs_on_a_model_beside_the_real_world(tmp_path, capsys):
     from common.cli import run_main
-    from data import sample_world as sw
-    from evaluation.diagnostics import main
+    from sample_world import render as sw
+    from diagnose import main
     from sample_world.build import tokenize_split
     from tests.play_fixtures import tiny_model, tiny_tokenizer
 
@@ -53,7 +53,7 @@ def test_control_runs_on_a_model_beside_the_real_world(tmp_path, capsys):
     sw.build_sample_world(tmp_path / "raw", train_maps=("MAP01",), val_maps=("MAP01",), train_episodes=1,
                           episode_len=120, workers=1, cfg=sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60))
     tokenize_split([tmp_path / "raw" / "val.npz"], tmp_path / "val", tokenizer, str(tokenizer), 8, "cpu", False)
-    code = run_main("evaluation.diagnostics", main, ["control", "--checkpoint_dir", str(tiny_model(tmp_path / "model")),
+    code = run_main("diagnose.py", main, ["control", "--checkpoint_dir", str(tiny_model(tmp_path / "model")),
                                                 "--val_data_dir", str(tmp_path / "val"), "--num_starts", "2",
                                                 "--steps", "2", "--num_threads", "1"])
     assert code == 0

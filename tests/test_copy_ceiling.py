@@ -1,4 +1,4 @@
-"""The copy ceiling (evaluation/copy_ceiling.py, python -m evaluation.diagnostics copy_ceiling): hand-made frames whose best
+"""The copy ceiling (evaluation/copy_ceiling.py, python diagnose.py copy_ceiling): hand-made frames whose best
 copies are known."""
 import numpy as np
 import pytest
@@ -7,10 +7,10 @@ import torch
 from data import write_token_dataset
 from common.cli import run_main
 from evaluation.copy_ceiling import best_copies, ceiling_rollout, code_distances, neighbours
-from evaluation.diagnostics import main
+from diagnose import main
 from tests.test_evaluate import ROLLOUT_KEYS, error_line, last_json_line, tiny  # noqa: F401 (tiny: a fixture)
 
-SAMPLER_KEYS = {"maskgit_steps", "temperature", "copy_bias", "greedy_tokens", "stall_ratio"}
+SAMPLER_KEYS = {"maskgit_steps", "temperature", "unmask_mode", "copy_bias", "greedy_tokens", "stall_ratio"}
 
 
 def ceiling_args(data, *extra):
@@ -137,7 +137,7 @@ def test_bad_copy_ceiling_flags(tiny, capsys, extra, code, message):
             main(ceiling_args(tiny.data, *extra))
         assert exit_info.value.code == 2
     else:
-        assert run_main("evaluation.diagnostics", main,
+        assert run_main("diagnose.py", main,
                         ceiling_args(tiny.data, *extra, "--tokenizer_ckpt", "unused", "--skip_lpips")) == code
     line = error_line(capsys.readouterr().err)
     assert ": error: " in line and message in line

@@ -2,13 +2,14 @@
 import json
 
 import pytest
+import safetensors.torch
 import torch
 
 from genie.decoding import GREEDY_TOKEN_CHOICES
 from genie import GenieConfig, STMaskGIT
 from genie.copy_head import CopyHead, previous_frames
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
-from genie.inference import generate_frames, teacher_forced
+from genie.inference import frame_slice, generate_frames, teacher_forced
 from common.config import ConfigError
 from genie.reference import dense_copy_mixture, generate_uncached, teacher_forced_uncached
 from genie.sampling import sample_mixture_tokens
@@ -109,7 +110,7 @@ def test_cached_inference_equals_recomputation_with_a_copy_head(maskgit_steps, m
     model = tiny_copy_model(radius=1, match=match)
     x = torch.randint(0, MASK, (2, 6, 4, 4), generator=torch.Generator().manual_seed(2))
     x[:, 3] = x[:, 2].roll(1, dims=2)  # a shifted frame, so copies matter
-    for fns in ((teacher_forced, teacher_forced_uncached), (generate, generate_uncached)):
+    for fns in ((teacher_forced, teacher_forced_uncached), (generate_frames, generate_uncached)):
         runs = []
         for fn in fns:
             args = (model, x) if fn in (teacher_forced, teacher_forced_uncached) else (model, x[:, :2], 4)
@@ -125,11 +126,11 @@ def test_logits_are_log_probabilities_and_frame_0_uses_the_readout_alone():
     x = torch.randint(0, MASK, (1, 3, 4, 4))
     with torch.no_grad():
         logp = model.logits(x)
-        hidden = model.hidden_states(x)
-        plain = model.out_x_proj(hidden).view(1, 3, 16, F_, V)
+        plain = model.predict_frames(x, greedy=False).readout_logits  # (B, V, F, T, H, W)
     torch.testing.assert_close(logp.exp().sum(dim=1), torch.ones(1, F_, 3, 4, 4))
     frame0 = logp[0, :, :, 0].permute(2, 3, 0, 1).reshape(16, V, F_)  # (S, V, F)
-    torch.testing.assert_close(frame0, plain[0, 0].transpose(1, 2).log_softmax(dim=1), atol=1e-5, rtol=1e-5)
+    plain0 = plain[0, :, :, 0].permute(2, 3, 0, 1).reshape(16, V, F_)
+    torch.testing.assert_close(frame0, plain0.log_softmax(dim=1), atol=1e-5, rtol=1e-5)
     assert not torch.allclose(logp[0, :, :, 1].exp().amax(dim=0), frame0.exp().amax(dim=1).T.reshape(F_, 4, 4))
 
 
@@ -146,8 +147,6 @@ def test_config_validation_and_checkpoint_round_trip(tmp_path):
     x = torch.randint(0, MASK, (1, 4, 4, 4))
     with torch.no_grad():
         torch.testing.assert_close(loaded.logits(x), model.logits(x))
-    with pytest.raises(ValueError, match="copy_sources"):
-        model.readout(torch.zeros(3, 32))
 
 
 def test_gradients_match_the_dense_mixture_with_repeated_and_dropped_neighbours():
@@ -219,7 +218,9 @@ def test_copy_bias_scales_the_copy_weights_and_is_a_decoding_setting(tmp_path):
         model.set_decoding(model.decoding.override(copy_bias=2.0))
         assert not torch.equal(model.logits(x), before)
         model.save_pretrained(tmp_path / "ckpt")
-        assert STMaskGIT.from_pretrained(tmp_path / "ckpt").copy_head.copy_bias == 0.0  # not saved
+        loaded = STMaskGIT.from_pretrained(tmp_path / "ckpt")  # saved with the checkpoint, not in the weights
+        assert loaded.copy_head.copy_bias == 2.0 and loaded.decoding == model.decoding
+        assert set(safetensors.torch.load_file(tmp_path / "ckpt" / "model.safetensors")) == set(model.state_dict())
         model.set_decoding(model.decoding.override(copy_bias=0.0))
         torch.testing.assert_close(model.logits(x), before, atol=0, rtol=0)
     plain_model = STMaskGIT(GenieConfig(num_layers=1))
@@ -316,10 +317,9 @@ def test_greedy_decoding_takes_the_joint_mode():
     window = x[:, :3].clone()
     window[:, 2] = MASK
     with torch.no_grad():
-        sources = model.window_copy_sources(window)
-        prediction = model.predict(model.hidden_states(window, sources_BTSK=sources)[:, 2], sources[:, 2])
-        mode, factor_wise = prediction.mode_ids.view(4, 4, 4), unfactorize_token_ids(
-            prediction.logits.argmax(dim=-2), F_, V).view(4, 4, 4)
+        prediction = frame_slice(model.predict_frames(window), 2)  # logits (B, V, F, H, W), mode (B, H, W)
+        mode, factor_wise = prediction.mode_ids, unfactorize_token_ids(prediction.logits.argmax(dim=1).movedim(1, -1),
+                                                                       F_, V)
         assert not torch.equal(mode, factor_wise)
         # one MaskGIT step decodes the first new frame from the prompt alone: the joint mode, not each factor's argmax
         torch.testing.assert_close(generate_frames(model, x[:, :2], 1, maskgit_steps=1)[0][:, 2], mode, atol=0, rtol=0)
@@ -367,7 +367,7 @@ def test_sampling_draws_whole_tokens():
     joint = generate_frames(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0, generator=gen())[0][:, 2]
     torch.testing.assert_close(joint, generate_uncached(model, x[:, :2], 1, maskgit_steps=1, temperature=1.0,
                                                         generator=gen())[0][:, 2], atol=0, rtol=0)
-    sources = model.copy_sources(x[:, 1:2])[:, 0]  # (B, S, K): frame 2's neighbours in frame 1
+    sources = model.copy_head.sources(x[:, 1:2])[:, 0]  # (B, S, K): frame 2's neighbours in frame 1
     assert (sources == joint.flatten(1).unsqueeze(-1)).any(-1).all()
 
 
@@ -399,11 +399,9 @@ def test_whole_token_draws_follow_the_mixture(temperature):
 def test_a_sampler_gets_the_mixture_and_its_parts_without_the_mode():
     model = tiny_copy_model(radius=1, seed=7, match=True)
     x = torch.randint(0, MASK, (2, 3, 4, 4), generator=torch.Generator().manual_seed(1))
-    sources = model.window_copy_sources(x)
     with torch.no_grad():
-        hidden = model.hidden_states(x, sources_BTSK=sources)
-        full = model.predict(hidden, sources)
-        lean = model.predict(hidden, sources, greedy=False)
+        full = model.predict_frames(x)
+        lean = model.predict_frames(x, greedy=False)
     assert full.mode_ids is not None and lean.mode_ids is None and lean.mode_probs is None
     torch.testing.assert_close(lean.logits, full.logits, atol=0, rtol=0)
     for name in ("copy_log_weights", "copy_sources", "readout_logits"):

@@ -1,4 +1,4 @@
-"""python -m evaluation.diagnostics: per-window scores, withheld actions, one-line errors; and the decoding flags
+"""python diagnose.py: per-window scores, withheld actions, one-line errors; and the decoding flags
 (genie/decoding.py) that evaluate.py, generate.py and the diagnostics share. The copy ceiling's tests are in
 tests/test_copy_ceiling.py, the breakdown's in tests/test_rollout_breakdown.py."""
 import argparse
@@ -18,9 +18,8 @@ from common.cli import run_main
 from data import RawTokenDataset, write_token_dataset
 from genie import STMaskGIT
 from genie.decoding import GREEDY_TOKEN_CHOICES
-from evaluation.diagnostics import build_parser, main
+from diagnose import build_parser, main
 from evaluation.protocols import example_indices
-from genie.decoding import GREEDY_TOKEN_CHOICES as GREEDY_TOKENS
 from tests.test_evaluate import (REPO, VOCAB, error_line, eval_args, last_json_line, make_checkpoint,  # noqa: F401
                                  tiny)
 
@@ -30,7 +29,7 @@ PER_HORIZON_KEYS = [f"{name}_{metric}" for name in ("rollout", "hold") for metri
 
 
 def diagnose(argv) -> int:
-    return run_main("evaluation.diagnostics", main, argv)
+    return run_main("diagnose.py", main, argv)
 
 
 def window_args(subcommand, data, *extra):
@@ -83,7 +82,7 @@ def test_bad_per_window_flags_are_usage_errors(tiny, capsys, extra, message):
         main(window_args("per_window", tiny.data, "--checkpoint_dir", str(tiny.ckpt), *extra))
     assert exit_info.value.code == 2
     line = error_line(capsys.readouterr().err)
-    assert line.startswith("python -m evaluation.diagnostics per_window: error: ") and message in line
+    assert line.startswith("diagnose.py per_window: error: ") and message in line
 
 
 # ------------------------------------------------------------------ withheld_actions
@@ -115,7 +114,7 @@ def withheld_args(world, data, *extra):
 
 def test_withheld_actions_gives_the_model_none(action_world, tiny, tmp_path, capsys, monkeypatch):
     calls = []
-    for name in ("generate", "teacher_forced"):
+    for name in ("generate_frames", "teacher_forced"):
         real = getattr(evaluation.protocols, name)
         monkeypatch.setattr(evaluation.protocols, name,
                             lambda *a, real=real, **kw: calls.append(kw) or real(*a, **kw))
@@ -135,7 +134,8 @@ def test_withheld_actions_gives_the_model_none(action_world, tiny, tmp_path, cap
     withheld = last_json_line(capsys.readouterr().out)
     assert calls and all(kw["latent_actions"] is None for kw in calls)
     assert withheld["actions_withheld"] is True and "delta_psnr" not in withheld
-    assert set(withheld) == set(evaluation.protocols.TEACHER_FORCED_KEYS) | {"num_examples", "actions_withheld"}
+    assert set(withheld) == set(evaluation.protocols.TEACHER_FORCED_KEYS) | {"num_examples", "actions_withheld",
+                                                                            "decoding"}
     blind_argv = ["--checkpoint_dir", str(action_world / "blind"), "--val_data_dir", str(action_world / "with_actions"),
                   "--window_size", "8", "--stride", "1", "--max_examples", "3", "--device", "cpu", "--skip_lpips",
                   "--train_data_dir", str(tmp_path / "none")]  # no latent action probe
@@ -150,7 +150,7 @@ def test_withheld_actions_needs_a_model_with_actions(tiny, capsys):
     assert diagnose(["withheld_actions", "--checkpoint_dir", str(tiny.ckpt), "--val_data_dir", str(tiny.data),
                      "--window_size", "8", "--stride", "3", "--device", "cpu", "--skip_lpips"]) == 1
     line = error_line(capsys.readouterr().err)
-    assert line.startswith("evaluation.diagnostics: error: withheld_actions: the checkpoint") and "takes no actions" in line
+    assert line.startswith("diagnose.py: error: withheld_actions: the checkpoint") and "takes no actions" in line
 
 
 @pytest.mark.parametrize("extra, message", [
@@ -169,15 +169,15 @@ def test_bad_withheld_actions_flags_are_usage_errors(action_world, capsys, extra
 
 # ------------------------------------------------------------------ the command line
 def test_bad_input_ends_the_command_in_one_line(tiny, tmp_path):
-    """As `python -m evaluation.diagnostics`: a usage error (exit status 2) and a missing dataset (1) end in one error
+    """As `python diagnose.py`: a usage error (exit status 2) and a missing dataset (1) end in one error
     line, no traceback."""
     env = {k: v for k, v in os.environ.items() if k != "WORLD_SIZE"}
     cases = [(["breakdown", "windows.jsonl"], 2,
-              "python -m evaluation.diagnostics breakdown: error: the following arguments are required: --val_data_dir"),
+              "diagnose.py breakdown: error: the following arguments are required: --val_data_dir"),
              (["copy_ceiling", "--val_data_dir", str(tmp_path / "missing"), "--skip_lpips"], 1,
-              f"evaluation.diagnostics: error: {tmp_path / 'missing'}"),
-             ([], 2, "python -m evaluation.diagnostics: error: the following arguments are required: SUBCOMMAND")]
-    ran = run_as_main({i: ("evaluation.diagnostics", argv) for i, (argv, _, _) in enumerate(cases)}, env=env)
+              f"diagnose.py: error: {tmp_path / 'missing'}"),
+             ([], 2, "diagnose.py: error: the following arguments are required: SUBCOMMAND")]
+    ran = run_as_main({i: ("diagnose.py", argv) for i, (argv, _, _) in enumerate(cases)}, env=env)
     for i, (argv, code, message) in enumerate(cases):
         proc = ran[i]
         assert proc.returncode == code and proc.stdout == ""
@@ -191,8 +191,8 @@ def subcommand_parsers():
 
 
 def command_parsers():
-    """(name, parser) of every command line: evaluate.py, generate.py, each diagnostic."""
-    parsers = {"evaluate.py": evaluate_parser(), "generate.py": generate_parser()}
+    """(name, parser) of every command line: evaluate.py, generate.py, play.py, each diagnostic."""
+    parsers = {"evaluate.py": evaluate_parser(), "generate.py": generate_parser(), "play.py": capture_parser(play, [])}
     parsers.update({f"diagnostics {name}": sub for name, sub in subcommand_parsers().items()})
     return parsers
 
@@ -230,31 +230,27 @@ def test_every_flag_is_explained_in_help():
 
 
 def test_the_decoding_flags_are_one_definition():
-    """The same flags, choices and defaults in every command that samples frames; --greedy_tokens offers exactly
-    the model's choices."""
-    assert tuple(GREEDY_TOKEN_CHOICES) == GREEDY_TOKENS and GREEDY_TOKENS[0] == "joint"
+    """The same decoding flags, choices and help in every command that samples frames, each unset by default (the
+    checkpoint's decoding.json decides); --greedy_tokens offers exactly the model's choices."""
     decoding = ("--maskgit_steps", "--temperature", "--unmask_mode", "--copy_bias", "--greedy_tokens", "--stall_ratio")
     seen = {}
     for name, parser in command_parsers().items():
         flags = {option: action for action in parser._actions for option in action.option_strings}
-        if name in ("diagnostics copy_ceiling", "diagnostics breakdown"):  # no model decodes there
+        if name in ("diagnostics copy_ceiling", "diagnostics breakdown", "diagnostics baselines"):  # no model decodes
             assert not set(decoding) & set(flags), name
             continue
-        if name == "diagnostics control":  # it checks the model as play.py plays it: play.py's sampler
-            play_args = capture_parser(play, []).parse_args([])
-            for flag in ("--maskgit_steps", "--temperature", "--copy_bias"):
-                assert flags[flag].default == getattr(play_args, flag[2:]), flag
-            continue
         described = {flag: (flags[flag].default, flags[flag].choices, flags[flag].help) for flag in decoding}
+        assert all(default is None for default, _, _ in described.values()), name
         seen.setdefault("first", described)
         assert described == seen["first"], name
-    assert seen["first"]["--greedy_tokens"][:2] == ("joint", ("joint", "best_neighbour"))
+    assert seen["first"]["--greedy_tokens"][1] == tuple(GREEDY_TOKEN_CHOICES) == ("joint", "best_neighbour")
 
 
 def test_help_of_every_command(capsys):
-    for argv in ([], ["copy_ceiling"], ["per_window"], ["breakdown"], ["withheld_actions"], ["control"]):
+    for argv in ([], ["copy_ceiling"], ["per_window"], ["breakdown"], ["withheld_actions"], ["control"],
+                 ["baselines"]):
         with pytest.raises(SystemExit) as exit_info:
             main([*argv, "--help"])
         assert exit_info.value.code == 0
         out = capsys.readouterr().out
-        assert out.startswith(f"usage: python -m evaluation.diagnostics {' '.join(argv)}".rstrip())
+        assert out.startswith(f"usage: diagnose.py {' '.join(argv)}".rstrip())

@@ -65,7 +65,7 @@ def ran(bad_files):
                                                     b / "lpips.safetensors"]),
         "verify": ("data.verify", [b / "missing"]),
         "play": ("play.py", ["--checkpoint_dir", b / "empty_dir", "--data_dir", b / "empty_dir"]),
-        "baselines": ("evaluation.baselines", ["--train_data_dir", b / "empty_dir", "--val_data_dir", b / "empty_dir"]),
+        "baselines": ("diagnose.py", ["baselines", "--train_data_dir", b / "empty_dir", "--val_data_dir", b / "empty_dir"]),
         "bench_dataset_index.py": (BENCHMARKS / "bench_dataset_index.py", ["--num_frames", "-5"]),
         "bench_tokenizer_train.py": (BENCHMARKS / "bench_tokenizer_train.py", ["--ch_mult", "1", "0"]),
     })
@@ -125,7 +125,7 @@ def test_verify_names_a_missing_directory(ran, bad_files):
 
 
 def test_baselines_name_a_directory_that_is_no_dataset(ran, bad_files):
-    line = error_line(ran["baselines"], "evaluation.baselines")
+    line = error_line(ran["baselines"], "diagnose.py")
     assert f"{bad_files / 'empty_dir' / 'metadata.json'}: file not found" in line
 
 

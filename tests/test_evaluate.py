@@ -2,6 +2,7 @@
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -19,7 +20,7 @@ from common.cli import run_main
 from tests.cli_runner import run_as_main
 from evaluate import main
 from genie import GenieConfig, STMaskGIT
-from evaluation.protocols import (FrameScorer, example_indices, rollout_result, score_rollout, teacher_forced_evaluate,
+from evaluation.protocols import (EvalConfig, FrameScorer, example_indices, rollout_result, score_rollout, teacher_forced_evaluate,
                               token_statistics)
 from evaluation.metrics import RunningMean, images_to_unit_range, token_accuracy
 from genie.metrics import factored_argmax_correct, factored_cross_entropy
@@ -27,12 +28,12 @@ from genie.inference import teacher_forced
 
 REPO = Path(__file__).resolve().parents[1]
 VOCAB = 64 ** 2
-JSON_KEYS = {"loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time", "num_examples"}
+JSON_KEYS = {"loss", "acc", "copy_acc", "pred_lpips", "gen_time", "dec_time", "num_examples", "decoding"}
 ROLLOUT_METRIC_KEYS = {f"{name}_{metric}{suffix}" for name in ("rollout", "hold")
                        for metric in ("psnr", "ssim", "lpips") for suffix in ("", "_mean")}
 ROLLOUT_KEYS = ROLLOUT_METRIC_KEYS | {"protocol", "num_prompt_frames", "rollout_far_psnr", "hold_far_psnr",
                                      "gen_time", "num_examples", "maskgit_steps", "temperature", "copy_bias",
-                                     "greedy_tokens", "stall_ratio"} | {
+                                     "greedy_tokens", "stall_ratio", "unmask_mode"} | {
     f"{name}_{stat}{suffix}" for name in ("rollout", "true") for stat in ("unchanged", "repeated")
     for suffix in ("", "_mean")}
 
@@ -230,9 +231,9 @@ class StubScorer:
 def test_lpips_and_decode_time_with_a_stub_scorer(tiny):
     dataset = RawTokenDataset(tiny.data, window_size=8, stride=3, filter_overlaps=True)
     model = STMaskGIT.from_pretrained(tiny.ckpt)
-    args = SimpleNamespace(window_size=8, maskgit_steps=2, temperature=0.0, unmask_mode="random", seed=0)
+    cfg = EvalConfig(val_data_dir=str(tiny.data), window_size=8, seed=0)
     outputs = []
-    result = teacher_forced_evaluate(model, DataLoader(dataset, batch_size=4), args, torch.device("cpu"), StubScorer(),
+    result = teacher_forced_evaluate(model, DataLoader(dataset, batch_size=4), cfg, torch.device("cpu"), StubScorer(),
                                      outputs)
     video = torch.from_numpy(np.concatenate(outputs))
     expected = ((video[:, 1:8] % 256) - (video[:, 8:] % 256)).abs().float().mean(dim=(2, 3)) / 255
@@ -388,7 +389,7 @@ def test_rollout_protocol_json_line(tiny, capsys):
     (["--num_prompt_frames", "3"], "--num_prompt_frames applies to --protocol rollout only"),
     (["--protocol", "rollout", "--num_prompt_frames", "3", "--save_outputs_dir", "out"],
      "does not apply to --protocol rollout"),
-    (["--protocol", "copy_ceiling"], "invalid choice: 'copy_ceiling'"),  # python -m evaluation.diagnostics copy_ceiling
+    (["--protocol", "copy_ceiling"], "invalid choice: 'copy_ceiling'"),  # python diagnose.py copy_ceiling
     (["--per_window_out", "windows.jsonl"], "unrecognized arguments: --per_window_out"),  # diagnostics per_window
     (["--withhold_actions"], "unrecognized arguments: --withhold_actions"),  # diagnostics withheld_actions
     (["--greedy_tokens", "factored"], "invalid choice: 'factored'"),
@@ -414,18 +415,45 @@ def test_rollout_needs_a_tokenizer_even_with_skip_lpips(tiny, tmp_path, capsys):
                                               ("best_neighbour", "best_neighbour")])
 def test_greedy_tokens_sets_the_models_decoding(tiny, capsys, monkeypatch, choice, expected):
     settings = []
-    real = STMaskGIT.set_greedy_tokens
-    monkeypatch.setattr(STMaskGIT, "set_greedy_tokens",
-                        lambda model, value: settings.append(value) or real(model, value))
+    real = STMaskGIT.set_decoding
+    monkeypatch.setattr(STMaskGIT, "set_decoding",
+                        lambda model, value: settings.append(value.greedy_tokens) or real(model, value))
     flag = () if choice is None else ("--greedy_tokens", choice)
     assert main(eval_args(tiny.data, tiny.ckpt, "--skip_lpips", "--max_examples", "1", *flag)) == 0
-    assert settings == [expected]
+    assert settings[-1] == expected
+    assert last_json_line(capsys.readouterr().out)["decoding"]["greedy_tokens"] == expected
+
+
+def test_the_checkpoints_decoding_is_used_unless_a_flag_overrides_it(tiny, tmp_path, capsys, monkeypatch):
+    """A checkpoint's decoding.json decides how its futures are sampled; a flag overrides one value; the JSON line
+    says what was used; the teacher-forced protocol scores the same checkpoint greedily with its MaskGIT steps."""
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(tiny.ckpt, ckpt)
+    (ckpt / "decoding.json").write_text(json.dumps({"temperature": 1.0, "maskgit_steps": 1, "unmask_mode": "greedy"}))
+    seen = []
+    real = evaluation.protocols.generate_frames
+    monkeypatch.setattr(evaluation.protocols, "generate_frames",
+                        lambda *a, **kw: seen.append((kw["temperature"], kw["maskgit_steps"])) or real(*a, **kw))
+    rollout = ("--protocol", "rollout", "--num_prompt_frames", "3", "--max_examples", "2", "--tokenizer_ckpt",
+               str(tiny.tokenizer), "--skip_lpips")
+    assert main(eval_args(tiny.data, ckpt, *rollout)) == 0
+    result = last_json_line(capsys.readouterr().out)
+    assert seen == [(1.0, 1)] and (result["temperature"], result["maskgit_steps"], result["unmask_mode"]) == \
+        (1.0, 1, "greedy")
+    assert main(eval_args(tiny.data, ckpt, *rollout, "--temperature", "0")) == 0
+    assert seen[-1] == (0.0, 1) and last_json_line(capsys.readouterr().out)["temperature"] == 0.0
+    assert main(eval_args(tiny.data, ckpt, "--skip_lpips", "--max_examples", "1")) == 0
+    decoding = last_json_line(capsys.readouterr().out)["decoding"]
+    assert (decoding["temperature"], decoding["maskgit_steps"], decoding["unmask_mode"]) == (0.0, 1, "greedy")
+    (ckpt / "decoding.json").write_text(json.dumps({"temperature": -1}))
+    assert run_evaluate(eval_args(tiny.data, ckpt, "--skip_lpips")) == 1
+    assert "temperature must be >= 0, got -1" in error_line(capsys.readouterr().err)
 
 
 def test_stall_ratio_reaches_the_rollouts_and_the_json_line(tiny, capsys, monkeypatch):
     seen = []
-    real = evaluation.protocols.generate
-    monkeypatch.setattr(evaluation.protocols, "generate",
+    real = evaluation.protocols.generate_frames
+    monkeypatch.setattr(evaluation.protocols, "generate_frames",
                         lambda *a, **kw: seen.append(kw["stall_ratio"]) or real(*a, **kw))
     assert main(eval_args(tiny.data, tiny.ckpt, "--protocol", "rollout", "--num_prompt_frames", "3", "--max_examples",
                           "2", "--tokenizer_ckpt", str(tiny.tokenizer), "--skip_lpips", "--stall_ratio", "1")) == 0

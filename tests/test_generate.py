@@ -145,12 +145,13 @@ def test_greedy_tokens_reach_a_copy_model_and_its_metadata(setup, tmp_path, monk
     model.init_weights()
     model.save_pretrained(tmp_path / "copy_ckpt")
     settings = []
-    real = STMaskGIT.set_greedy_tokens
-    monkeypatch.setattr(STMaskGIT, "set_greedy_tokens", lambda m, value: settings.append(value) or real(m, value))
+    real = STMaskGIT.set_decoding
+    monkeypatch.setattr(STMaskGIT, "set_decoding",
+                        lambda m, value: settings.append(value.greedy_tokens) or real(m, value))
     generate.main(["--val_data_dir", str(setup / "val"), "--checkpoint_dir", str(tmp_path / "copy_ckpt"),
                    "--output_dir", str(tmp_path / "out"), "--window_size", str(T), "--num_prompt_frames", str(P),
                    "--stride", "1", "--device", "cpu", "--greedy_tokens", choice, "--copy_bias", "2"])
-    assert settings == [choice]
+    assert settings[-1] == choice
     meta = read_metadata(tmp_path / "out")
     assert (meta["greedy_tokens"], meta["copy_bias"]) == (choice, 2.0)
 

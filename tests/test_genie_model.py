@@ -11,6 +11,7 @@ import torch.nn.functional as F
 import genie
 from common.config import ConfigError
 from common.errors import CheckpointError
+from genie.decoding import DecodingConfig
 from genie import GenieConfig, MaskGITBatch, STMaskGIT, TrainingRecipe
 from genie.checkpoint import load_state_dict_checked
 from genie.reference import full_logits_loss
@@ -147,31 +148,6 @@ def test_35m_config_has_published_names_shapes_and_size():
 def test_8_layer_config_is_the_benchmark_shape():
     config = GenieConfig.from_pretrained(CONFIG_DIR / "magvit_n8_h8_d256.json")
     assert (config.num_layers, config.num_heads, config.d_model, config.T, config.S) == (8, 8, 256, 16, 256)
-
-
-@pytest.mark.parametrize("small, large", [("sample_world", "gpu_world"), ("sample_world_actions", "gpu_world_actions")])
-def test_gpu_recipe_configs_are_the_cpu_models_scaled(small, large):
-    """run_gpu.sh's models differ from the CPU defaults in size alone (depth, width and the number of heads, at the
-    CPU model's head width), so the two recipes' numbers compare."""
-    size = ("num_layers", "num_heads", "d_model")
-    cpu, gpu = (json.loads((CONFIG_DIR / f"{name}.json").read_text()) for name in (small, large))
-    assert {k: v for k, v in gpu.items() if k not in size} == {k: v for k, v in cpu.items() if k not in size}
-    assert gpu["d_model"] // gpu["num_heads"] == cpu["d_model"] // cpu["num_heads"]
-    config = GenieConfig.from_pretrained(CONFIG_DIR / f"{large}.json")
-    assert (config.num_layers, config.d_model) == (8, 256)
-    params = sum(p.numel() for p in STMaskGIT(config).parameters())
-    assert 9.9e6 < params < 10.1e6  # the README's 10.0 M
-
-
-def test_latent_action_config_is_the_main_model_with_latent_actions():
-    """sample_world_latent.json is the main command's model with the LAM's 8 latent actions in place of the real
-    action streams, so the two kinds of action model compare at the same architecture."""
-    real = ("action_names", "action_dim", "action_step_mean")
-    main, latent = (json.loads((CONFIG_DIR / f"{name}.json").read_text())
-                    for name in ("sample_world_actions", "sample_world_latent"))
-    assert latent == {**{k: v for k, v in main.items() if k not in real}, "num_latent_actions": 8}
-    config = GenieConfig.from_pretrained(CONFIG_DIR / "sample_world_latent.json")
-    assert config.uses_actions and config.action_names is None and config.num_latent_actions == 8
 
 
 @pytest.mark.parametrize("qk_norm", [False, True])
@@ -316,7 +292,7 @@ def test_self_reveal_fills_masked_tokens_with_the_models_greedy_guesses(variant)
     config = model.config
     x = random_tokens(config, B=3, T=4, mask_rate=0.7)
     torch.manual_seed(0)
-    revealed = model.reveal_own_predictions(x, None, 1.0)
+    revealed = model._reveal_own_predictions(x, None, 1.0)
     was_masked = x == config.mask_token_id
     assert torch.equal(revealed[~was_masked], x[~was_masked]), "given tokens stay"
     assert torch.equal(revealed[:, 0], x[:, 0]), "frame 0 is never a target"
@@ -339,7 +315,7 @@ def test_self_reveal_only_in_training_and_only_for_the_chosen_share():
     torch.manual_seed(5)
     trained_on = model.train()(MaskGITBatch(x, labels), recipe)
     torch.manual_seed(5)
-    revealed = model.reveal_own_predictions(x, None, 1.0)
+    revealed = model._reveal_own_predictions(x, None, 1.0)
     expected = full_logits_loss(model.eval(), MaskGITBatch(revealed, labels))  # no reveal on this path
     torch.testing.assert_close(trained_on.loss, expected.loss)
     assert not torch.equal(revealed, x)
@@ -348,7 +324,7 @@ def test_self_reveal_only_in_training_and_only_for_the_chosen_share():
     assert not torch.allclose(evaluated.loss, trained_on.loss)
     torch.manual_seed(5)
     assert torch.allclose(model.train()(MaskGITBatch(x, labels)).loss, evaluated.loss)  # the published recipe
-    assert torch.equal(model.reveal_own_predictions(x, None, 0.0), x)
+    assert torch.equal(model._reveal_own_predictions(x, None, 0.0), x)
 
 
 @pytest.mark.parametrize("field", ["max_corrupt_rate", "non_mlm_ratio", "self_reveal_ratio"])
@@ -421,7 +397,7 @@ def test_checkpoint_round_trip(tmp_path):
     model.init_weights()
     model.save_pretrained(tmp_path / "ckpt")
     assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == ["MANIFEST.json", "config.json",
-                                                                     "model.safetensors"]
+                                                                     "decoding.json", "model.safetensors"]
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt"]  # no temporary directory left behind
     assert json.loads((tmp_path / "ckpt" / "config.json").read_text()) == config.to_dict()
     loaded = STMaskGIT.from_pretrained(str(tmp_path / "ckpt"))
@@ -435,6 +411,26 @@ def test_checkpoint_round_trip(tmp_path):
     assert (tmp_path / "ckpt" / "README.md").read_text() == "notes"
     again = STMaskGIT.from_pretrained(tmp_path / "ckpt")
     assert torch.equal(again.out_x_proj.weight, model.out_x_proj.weight)
+
+
+def test_the_decoding_travels_with_the_checkpoint(tmp_path):
+    """decoding.json round-trips; a checkpoint without one (published, or saved before it existed) decodes as the
+    published code does; a bad one is an error naming the file; recipe.json is written when given."""
+    model = STMaskGIT(tiny_config(copy_radius=1))
+    decoding = DecodingConfig(temperature=1.0, copy_bias=2.0, greedy_tokens="best_neighbour", maskgit_steps=3)
+    model.set_decoding(decoding)
+    model.save_pretrained(tmp_path / "ckpt", run_recipe={"train": {"learning_rate": 0.01}})
+    loaded = STMaskGIT.from_pretrained(tmp_path / "ckpt")
+    assert loaded.decoding == decoding and loaded.copy_head.copy_bias == 2.0 and loaded.copy_head.best_neighbour_copies
+    assert json.loads((tmp_path / "ckpt" / "recipe.json").read_text()) == {"train": {"learning_rate": 0.01}}
+    assert {"decoding.json", "recipe.json"} <= set(json.loads((tmp_path / "ckpt" / "MANIFEST.json").read_text())["files"])
+    (tmp_path / "ckpt" / "decoding.json").unlink()
+    published = STMaskGIT.from_pretrained(tmp_path / "ckpt")
+    assert published.decoding == DecodingConfig() and published.copy_head.copy_bias == 0.0
+    assert (DecodingConfig().temperature, DecodingConfig().maskgit_steps, DecodingConfig().copy_bias) == (0.0, 2, 0.0)
+    (tmp_path / "ckpt" / "decoding.json").write_text(json.dumps({"temperature": 1.0, "top_k": 5}))
+    with pytest.raises(ConfigError, match=r"decoding.json: unknown key\(s\) \['top_k'\]"):
+        STMaskGIT.from_pretrained(tmp_path / "ckpt")
 
 
 def test_unknown_config_key_is_an_error(tmp_path):

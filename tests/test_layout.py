@@ -1,4 +1,5 @@
-"""The package layering: common <- data <- magvit2 <- genie, lam <- scripts; nothing imports a higher layer."""
+"""The package boundaries: each package imports only the packages below it in pipeline order; genie/ (the network)
+reaches only common/; nothing imports the play server but play.py; flags are parsed only in entry points."""
 import ast
 import os
 import re
@@ -9,30 +10,95 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-ALLOWED = {"common": {"common"}, "data": {"common", "data"}, "magvit2": {"common", "data", "magvit2"},
-           "genie": {"common", "data", "magvit2", "genie"}, "lam": {"common", "data", "magvit2", "lam"}}
+# package -> the project packages it may import (itself included), in pipeline order
+ALLOWED = {
+    "common": {"common"},
+    "data": {"common", "data"},
+    "magvit2": {"common", "data", "magvit2"},
+    "genie": {"common", "genie"},
+    "lam": {"common", "data", "magvit2", "lam"},
+    "training": {"common", "data", "genie", "training"},
+    "sample_world": {"common", "data", "magvit2", "sample_world"},
+    "envs": {"common", "data", "magvit2", "genie", "training", "sample_world", "envs"},
+    "evaluation": {"common", "data", "magvit2", "genie", "training", "sample_world", "envs", "evaluation"},
+    "play_server": {"common", "envs", "play_server"},
+}
+PACKAGES = set(ALLOWED)
+# what the network must load without: the environments, the web server, the simulator, the command line
+NOT_IN_GENIE = {"gymnasium", "fastapi", "uvicorn", "starlette", "vizdoom", "argparse", "tqdm"}
 
 
-def imported_packages(path: Path) -> set:
+def imports(path: Path) -> set:
+    """The top-level names of every module `path` imports (at module level or inside functions)."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
-            names.update(alias.name.split(".")[0] for alias in node.names)
+            names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names.add(node.module.split(".")[0])
-    return names & set(ALLOWED)
+            names.add(node.module)
+    return names
+
+
+def top_level(names: set) -> set:
+    return {name.split(".")[0] for name in names}
+
+
+def project_modules():
+    """Every Python file of the project's packages and root scripts (not tests or benchmarks)."""
+    for path in sorted(REPO.glob("*.py")):
+        yield path
+    for package in sorted(PACKAGES):
+        yield from sorted((REPO / package).rglob("*.py"))
+
+
+def is_entry_point(path: Path) -> bool:
+    return "if __name__ == \"__main__\":" in path.read_text()
 
 
 @pytest.mark.parametrize("package", sorted(ALLOWED))
 def test_no_package_imports_a_higher_layer(package):
     for path in sorted((REPO / package).rglob("*.py")):
-        higher = imported_packages(path) - ALLOWED[package]
+        higher = top_level(imports(path)) & PACKAGES - ALLOWED[package]
         assert not higher, f"{path.relative_to(REPO)} imports {sorted(higher)}"
 
 
-SCRIPTS = ["train.py", "evaluate.py", "visualize.py", "generate.py", "evaluation/baselines.py", "magvit2/train.py",
+def test_the_network_needs_nothing_of_the_pipeline():
+    """genie/ holds what loading, training-forward and sampling the weights needs, and nothing else: no
+    environment, server, simulator, command line or progress bar."""
+    for path in sorted((REPO / "genie").rglob("*.py")):
+        found = top_level(imports(path)) & NOT_IN_GENIE
+        assert not found, f"{path.relative_to(REPO)} imports {sorted(found)}"
+
+
+def test_nothing_imports_the_play_server_but_play_py():
+    for path in project_modules():
+        if path.parent.name != "play_server" and path.name != "play.py":
+            assert "play_server" not in top_level(imports(path)), f"{path.relative_to(REPO)} imports play_server"
+
+
+def test_flags_are_parsed_only_in_entry_points():
+    """argparse (and the modules that define flags, `cli.py`) belong to entry points: a library function takes
+    dataclasses and values, never a parsed command line."""
+    for path in project_modules():
+        if is_entry_point(path) or path.name == "cli.py":
+            continue
+        found = {name for name in imports(path) if name == "argparse" or name.endswith(".cli")}
+        assert not found, f"{path.relative_to(REPO)} is no entry point but imports {sorted(found)}"
+
+
+def test_the_layout_check_finds_what_it_looks_for(tmp_path):
+    """The checks above read imports anywhere in a file, in both forms."""
+    probe = tmp_path / "probe.py"
+    probe.write_text("def f():\n    import argparse\n    from evaluation.cli import eval_config\n"
+                     "from play_server.app import build_app\n")
+    assert imports(probe) == {"argparse", "evaluation.cli", "play_server.app"}
+    assert top_level(imports(probe)) & PACKAGES == {"evaluation", "play_server"}
+    assert not is_entry_point(probe)
+
+
+SCRIPTS = ["train.py", "evaluate.py", "visualize.py", "generate.py", "diagnose.py", "play.py", "magvit2/train.py",
            "magvit2/tokenize_frames.py", "magvit2/lpips_weights.py", "sample_world/build.py", "sample_world/render.py",
-           "lam/train.py", "lam/label.py", "evaluation/diagnostics.py", "data/verify.py"]
+           "lam/train.py", "lam/label.py", "data/verify.py"]
 
 
 def test_every_script_answers_help():

@@ -13,7 +13,7 @@ from PIL import Image
 pytest.importorskip("vizdoom")
 from fastapi.testclient import TestClient  # noqa: E402
 
-from data import sample_world as sw  # noqa: E402
+from sample_world import render as sw  # noqa: E402
 from envs.world_model import WorldModelEnv  # noqa: E402
 from sample_world.build import tokenize_split  # noqa: E402
 from envs.pairing import real_world_for  # noqa: E402

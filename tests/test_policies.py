@@ -81,7 +81,7 @@ vizdoom = pytest.importorskip("vizdoom")
 
 @pytest.fixture(scope="module")
 def worlds():
-    from data import sample_world as sw
+    from sample_world import render as sw
     from envs.doom import DoomEnv
 
     cfg = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)
@@ -144,7 +144,7 @@ def test_a_model_that_ignores_actions_ranks_no_better_than_chance(worlds):
 
 def test_evaluate_policies_protocol_end_to_end(tmp_path, capsys):
     from common.cli import run_main
-    from data import sample_world as sw
+    from sample_world import render as sw
     from evaluate import main
     from sample_world.motion_estimator import train_motion_estimator
     from tests.play_fixtures import tiny_model, tiny_tokenizer

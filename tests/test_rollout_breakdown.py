@@ -1,4 +1,4 @@
-"""python -m evaluation.diagnostics breakdown (evaluation/rollout_breakdown.py): the windows of a --per_window_out file grouped
+"""python diagnose.py breakdown (evaluation/rollout_breakdown.py): the windows of a --per_window_out file grouped
 by their future's motion."""
 import json
 
@@ -7,7 +7,7 @@ import pytest
 
 from data import RawTokenDataset, write_token_dataset
 from common.cli import run_main
-from evaluation.diagnostics import main
+from diagnose import main
 
 T, P, STRIDE = 6, 2, 2
 
@@ -37,7 +37,7 @@ def world(tmp_path):
 
 
 def run(capsys, data, per_window, *extra):
-    code = run_main("evaluation.diagnostics", main, ["breakdown", str(per_window), "--val_data_dir", str(data),
+    code = run_main("diagnose.py", main, ["breakdown", str(per_window), "--val_data_dir", str(data),
                                                 "--num_prompt_frames", str(P), "--stride", str(STRIDE), *extra])
     captured = capsys.readouterr()
     if code:  # one error line, no traceback

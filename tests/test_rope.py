@@ -76,7 +76,8 @@ def test_rope_cached_inference_equals_full_recomputation(rope):
     model = rope_model(**rope)
     x = torch.randint(0, 64 ** 2, (2, 6, 4, 4), generator=torch.Generator().manual_seed(2))
     (cached_tokens, cached_logits), (full_tokens, full_logits) = [
-        fn(model, x[:, :2], 4, 2, 1.0, generator=torch.Generator().manual_seed(3)) for fn in (generate, generate_uncached)]
+        fn(model, x[:, :2], 4, 2, 1.0, generator=torch.Generator().manual_seed(3))
+        for fn in (generate_frames, generate_uncached)]
     torch.testing.assert_close(cached_logits, full_logits, atol=1e-5, rtol=1e-5)
     assert torch.equal(cached_tokens, full_tokens)
     (cached_samples, cached_logits), (full_samples, full_logits) = [

@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("vizdoom")
 
-from data import sample_world as sw  # noqa: E402
+from sample_world import render as sw  # noqa: E402
 
 # Short warm-up keeps the tests fast; 35 tics is still past the frozen first tics of an episode.
 FAST = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)

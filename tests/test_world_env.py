@@ -85,7 +85,7 @@ def test_same_seed_same_future_and_actions_matter(env):
 def test_cached_sliding_step_equals_recomputing_the_window(env, temperature):
     """Every step, through the growing context and T + 3 slides, gives the frame that recomputing the whole window
     at every MaskGIT step gives from the same context, actions and random state."""
-    env.temperature = temperature
+    env.model.set_decoding(env.model.decoding.override(temperature=temperature))
     env.reset(seed=3, options={"window": 2, "prompt_frames": 1})
     rng = np.random.default_rng(0)
     for _ in range(2 * T + 3):
@@ -93,8 +93,8 @@ def test_cached_sliding_step_equals_recomputing_the_window(env, temperature):
         tokens, actions, latent = env.step_inputs(action)  # the context keeps the last T-1 frames
         np.testing.assert_array_equal(actions[-1].numpy(), action)
         generator = torch.Generator().set_state(env._generator.get_state())
-        expected = next_frame_recomputed(env.model, tokens, actions, latent, env.maskgit_steps, temperature,
-                                         generator)
+        expected = next_frame_recomputed(env.model, tokens, actions, latent, env.model.decoding.maskgit_steps,
+                                         temperature, generator)
         _, _, _, _, info = env.step(action)
         np.testing.assert_array_equal(info["tokens"], expected.numpy())
         assert info["context_frames"] == len(tokens) + 1 <= T
