@@ -24,6 +24,7 @@ import logging
 import sys
 
 from common.cli import add_device_arg, add_num_threads_arg, apply_cpu_settings, resolve_device, run_main
+from common.shutdown import exit_on_sigterm
 from evaluation.cli import add_decoding_args, check_decoding_args, decoding_overrides
 
 
@@ -59,14 +60,18 @@ def main(argv=None) -> int:
     from play_server.app import build_app, make_session
 
     args = parse_args(argv)
+    exit_on_sigterm()  # SIGTERM exits as Ctrl-C does, closing the real world's engine (common/shutdown.py)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     apply_cpu_settings(args.num_threads)
     overrides = decoding_overrides(args)
     session = make_session(args.checkpoint_dir, args.data_dir, args.tokenizer_ckpt, resolve_device(args.device),
                            overrides, args.prompt_frames, not args.no_real_world, args.seed)
-    app = build_app(session)
-    print(f"play: open http://{args.host}:{args.port}/ in a browser (Ctrl-C stops)", flush=True)
-    uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+    try:
+        app = build_app(session)
+        print(f"play: open http://{args.host}:{args.port}/ in a browser (Ctrl-C stops)", flush=True)
+        uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+    finally:  # Ctrl-C, SIGTERM (uvicorn stops serving, then re-raises it: exit_on_sigterm's exit) or an error
+        session.close()
     return 0
 
 

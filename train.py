@@ -442,7 +442,8 @@ def train(args, accelerator: Accelerator, trainer: Trainer, data: TrainData, con
     trainer.ddp_model.train()
     bar = tqdm(total=max_steps, initial=trainer.step, disable=not accelerator.is_local_main_process, desc="train",
                dynamic_ncols=True)
-    # logging_redirect_tqdm: log lines go above the progress bar instead of through it
+    # StopSignal spans the final saves too, so that a SIGTERM then lets them finish; logging_redirect_tqdm: log
+    # lines go above the progress bar instead of through it
     with StopSignal() as stop_signal, logging_redirect_tqdm(), contextlib.closing(bar):
         while trainer.step < max_steps:
             epoch, batch_in_epoch = divmod(trainer.step, data.steps_per_epoch)

@@ -77,6 +77,17 @@ class PlaySession:
             self.step_seconds.append(time.perf_counter() - t0)
             return frame
 
+    def close(self) -> None:
+        """Close the real world's engine (a process of its own); again is a no-op. Waits a little for a step in
+        flight, then closes anyway: the server is going away."""
+        locked = self.lock.acquire(timeout=10)
+        try:
+            if self.real_env is not None:
+                self.real_env.close()
+        finally:
+            if locked:
+                self.lock.release()
+
 
 def build_app(session: PlaySession):
     """The FastAPI application of a session: the page and the HTTP API (module doc)."""

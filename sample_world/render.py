@@ -53,6 +53,7 @@ from tqdm import tqdm
 
 from common.cli import add_hidden_alias, non_negative_int, positive_int, run_main
 from common.errors import InputError
+from common.shutdown import exit_on_sigterm, stop_pool
 
 HZ = 35  # Doom's fixed tic rate; we record every tic.
 STEP_TICS = 15  # tics between the frames of a token dataset window (its stride): one step of a player or a policy
@@ -326,9 +327,12 @@ def make_game(map_name: str, cfg: WorldConfig, workdir: Optional[str] = None):
 
     The engine writes _vizdoom.ini and a _vizdoom/ folder into its working directory: `workdir` (default: the
     current one) gives it a private one, so that engines started at the same moment do not race to create them.
+    The engine is a process of its own that outlives a killed parent: SIGTERM becomes an orderly exit from here on
+    (common/shutdown.py), so that the caller's `game.close()` (a `finally`, DoomEnv's exit handler) still runs.
     """
     import vizdoom as vzd
 
+    exit_on_sigterm()
     check_maps([map_name])
     game = vzd.DoomGame()
     if workdir is not None:
@@ -513,11 +517,14 @@ def map_in_order(fn, tasks: list, workers: int, stall_timeout_s: float = STALL_T
     A worker that dies (a crash in the engine) or whose engine stops answering would leave multiprocessing's
     imap waiting forever. Here, when the next result takes longer than `stall_timeout_s`, the pool is killed and
     the tasks not yet yielded rerun in a fresh pool (a task's result depends only on its arguments); a second stall
-    raises RuntimeError. Exceptions raised by fn propagate unchanged.
+    raises RuntimeError. Exceptions raised by fn propagate unchanged. On SIGTERM, as on Ctrl-C, the workers are
+    stopped in order: each closes its engine (common/shutdown.py).
     """
+    exit_on_sigterm()  # SIGTERM unwinds to the `finally` below rather than orphaning the workers
     done = 0
     for attempt in range(2):
-        pool = multiprocessing.Pool(workers)  # the default start method (fork on Linux: no re-import of `data`)
+        # the default start method (fork on Linux: no re-import of `data`); each worker exits in order on SIGTERM
+        pool = multiprocessing.Pool(workers, initializer=exit_on_sigterm)
         try:
             pending = [pool.apply_async(fn, (task,)) for task in tasks[done:]]
             for result in pending:
@@ -533,8 +540,7 @@ def map_in_order(fn, tasks: list, workers: int, stall_timeout_s: float = STALL_T
                   f"died or its engine hangs); restarting the workers for the {len(tasks) - done} tasks left",
                   file=sys.stderr)
         finally:
-            pool.terminate()
-            pool.join()
+            stop_pool(pool)
 
 
 def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int, seed: int, *,

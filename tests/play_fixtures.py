@@ -44,3 +44,17 @@ def tiny_dataset(path: Path, tokenizer: Path, num_frames: int = 200, latent: int
         actions["latent_action"] = rng.integers(0, latent, size=(num_frames, 1)).astype(np.float32)
     return write_token_dataset(path, video, np.zeros(num_frames, dtype=np.int32), actions=actions,
                                metadata={"hz": 35, "tokenizer_ckpt": str(tokenizer)})
+
+
+def tiny_play_world(root: Path) -> dict:
+    """A tiny sample world (raw walks of MAP01 + their token dataset), its tokenizer and a tiny model driven by its
+    buttons: what play.py needs to serve the model with the real world beside it. Needs vizdoom."""
+    from sample_world import render as sw
+    from sample_world.build import tokenize_split
+
+    tokenizer = tiny_tokenizer(root / "tokenizer")
+    cfg = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)
+    sw.build_sample_world(root / "raw", train_maps=("MAP01",), val_maps=("MAP01",), train_episodes=1,
+                          episode_len=120, workers=1, cfg=cfg)
+    tokenize_split([root / "raw" / "val.npz"], root / "val", tokenizer, str(tokenizer), 8, "cpu", False)
+    return {"root": root, "data": root / "val", "model": tiny_model(root / "model"), "tokenizer": tokenizer}

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from common.cli import add_device_arg, add_hidden_alias, cpu_has_native_bf16, resolve_device, run_main
-from magvit2 import build_sample
+from sample_world import build as build_sample
 from magvit2 import train as magvit2_train
 
 

@@ -74,12 +74,12 @@ def ran(bad_files):
 # ---------------------------------------------------------------- each entry point as __main__
 
 def test_build_sample_names_an_unknown_map(ran):
-    line = usage_error(ran["build_sample"], "build_sample.py")
+    line = usage_error(ran["build_sample"], "build.py")
     assert f"argument --train_maps: unknown map '{UNKNOWN_MAP}'" in line
 
 
 def test_sample_world_names_an_unknown_map(ran, bad_files):
-    assert "argument --val_maps: unknown map 'E9M9'" in usage_error(ran["sample_world"], "sample_world.py")
+    assert "argument --val_maps: unknown map 'E9M9'" in usage_error(ran["sample_world"], "render.py")
     assert not list((bad_files / "sample_world_out").iterdir())  # nothing rendered
 
 
@@ -187,7 +187,7 @@ def test_script_errors_are_the_shared_classes():
 def test_build_sample_accepts_every_map_the_shipped_worlds_use():
     """The map check is the parser's: the default world and build.sh's sets of unseen maps must pass it."""
     from sample_world import render as sample_world
-    from magvit2 import build_sample
+    from sample_world import build as build_sample
 
     args = build_sample.parse_args([])
     assert args.train_maps == list(sample_world.TRAIN_MAPS) and args.val_maps == list(sample_world.VAL_MAPS)

@@ -52,7 +52,7 @@ def tiny_genie() -> STMaskGIT:
 
 def test_flipped_byte_in_genie_weights_is_refused_naming_the_file(tmp_path):
     tiny_genie().save_pretrained(tmp_path / "model")
-    assert set(read_manifest(tmp_path / "model")) == {"config.json", "model.safetensors"}
+    assert set(read_manifest(tmp_path / "model")) == {"config.json", "decoding.json", "model.safetensors"}
     STMaskGIT.from_pretrained(tmp_path / "model")  # intact: loads
     flip_byte(tmp_path / "model" / "model.safetensors")
     with pytest.raises(IntegrityError, match=r"model\.safetensors.*do not match the digest"):
@@ -73,7 +73,7 @@ def test_saving_over_an_existing_model_keeps_its_manifest_valid(tmp_path):
     with torch.no_grad():
         next(model.parameters()).add_(1.0)
     model.save_pretrained(tmp_path / "model")  # replaces the files in place
-    assert verify_manifest(tmp_path / "model") == ["config.json", "model.safetensors"]
+    assert verify_manifest(tmp_path / "model") == ["config.json", "decoding.json", "model.safetensors"]
 
 
 def test_flipped_byte_in_training_checkpoint_is_refused_on_resume(tmp_path):

@@ -1,7 +1,9 @@
 """Run recipes (training/recipe.py, recipes/*.json): train.py --recipe, the resolved recipe every checkpoint keeps
 (recipe.json, decoding.json), the errors of a bad recipe, and the shipped recipes themselves."""
 import json
+import os
 import re
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -198,3 +200,45 @@ def model_dict(path: Path) -> dict:
     d = json.loads(path.read_text())
     return d["model"] if "model" in d else d
 
+
+
+# ---------------------------------------------------------------- the shell jobs
+
+def train_call(script: str, tmp_path: Path, **env) -> list:
+    """The train.py arguments `script` runs with the environment `env`, read from a stand-in Python that records
+    them and stops the job there (it answers the GPU and data checks before)."""
+    fake = tmp_path / "python"
+    fake.write_text("#!/usr/bin/env bash\n"
+                    "case \"$1\" in -c|-m) exit 0 ;; train.py) shift; printf '%s\\n' \"$@\" > \"$ARGS_FILE\"; "
+                    "exit 3 ;; esac\nexit 1\n")
+    fake.chmod(0o755)
+    for split in ("train", "val"):
+        (tmp_path / "world" / split).mkdir(parents=True, exist_ok=True)
+        (tmp_path / "world" / split / "metadata.json").write_text("{}")
+    base = {"PATH": os.environ["PATH"], "PY": str(fake), "ARGS_FILE": str(tmp_path / "args"),
+            "SAMPLE_DIR": str(tmp_path / "world"), "GPU_DIR": str(tmp_path / "world"), "SKIP_BUILD": "1",
+            "OUT": str(tmp_path / "out")}
+    proc = subprocess.run(["bash", str(REPO / script), "--seed", "7"], env={**base, **env}, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 3, proc.stderr
+    return (tmp_path / "args").read_text().splitlines()
+
+
+def test_run_sample_trains_its_recipe_with_the_variables_overrides(tmp_path):
+    world = tmp_path / "world"
+    common = ["--train_data_dir", f"{world}/train", "--val_data_dir", f"{world}/val", "--output_dir",
+              str(tmp_path / "out"), "--resume_from_checkpoint", "latest", "--seed", "7"]
+    assert train_call("run_sample.sh", tmp_path) == ["--recipe", "recipes/sample_world.json", *common]
+    assert train_call("run_sample.sh", tmp_path, GENIE_CONFIG="my config.json", WEIGHT_DECAY="0.1",
+                      RECIPE="mine.json") == ["--recipe", "mine.json", "--genie_config", "my config.json",
+                                              "--weight_decay", "0.1", *common]
+
+
+def test_run_gpu_trains_its_recipe_with_the_variables_overrides(tmp_path):
+    args = train_call("run_gpu.sh", tmp_path)
+    assert args[:2] == ["--recipe", "recipes/gpu_world.json"] and args[-2:] == ["--seed", "7"]
+    assert not {"--max_train_steps", "--num_warmup_steps", "--learning_rate", "--compile"} & set(args)
+    args = train_call("run_gpu.sh", tmp_path, STEPS="40", LR="1e-3", COMPILE="1")
+    assert args[-9:] == ["--max_train_steps", "40", "--num_warmup_steps", "2", "--learning_rate", "1e-3",
+                         "--compile", "--seed", "7"]
+    assert train_call("run_gpu.sh", tmp_path, WARMUP="5")[-4:] == ["--num_warmup_steps", "5", "--seed", "7"]
