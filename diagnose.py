@@ -16,6 +16,7 @@ import json
 import sys
 
 from common.cli import add_num_threads_arg, run_main, setup_logging
+from common.shutdown import exit_on_sigterm
 from evaluation.baselines import baselines
 from evaluation.cli import (add_decoding_args, add_per_window_arg, add_prompt_arg, add_protocol_args,
                             add_save_outputs_arg, add_window_args, check_decoding_args, check_per_window_arg,
@@ -269,6 +270,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     setup_logging()
+    exit_on_sigterm()  # the control check starts ViZDoom engines: SIGTERM closes them, as Ctrl-C does
     args = parse_args(argv)
     print(json.dumps(args.run(args)))
     return 0

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from common.cli import run_main, setup_logging
+from common.shutdown import exit_on_sigterm
 from data import RawTokenDataset
 from training.action_streams import LATENT_ACTION_NAME, latent_action_sidecar
 from evaluation.cli import (POLICIES_HELP, add_policy_args, add_protocol_args, add_save_outputs_arg, add_window_args,
@@ -146,6 +147,7 @@ def run(args: argparse.Namespace) -> dict:
 
 def main(argv=None) -> int:
     setup_logging()
+    exit_on_sigterm()  # the policies protocol starts ViZDoom engines: SIGTERM closes them, as Ctrl-C does
     print(json.dumps(run(parse_args(argv))))
     return 0
 

@@ -4,8 +4,8 @@ A ViZDoom engine is a process of its own that ignores SIGTERM and outlives its p
 (SIGTERM's default: no `finally`, no exit handlers) leaves its engines running, each with ~10 MB of shared memory in
 /dev/shm. `exit_on_sigterm` turns SIGTERM into `Terminated`, a SystemExit with the shell's status 143 (128 + 15),
 raised in the main thread like Ctrl-C's KeyboardInterrupt: `finally` blocks and exit handlers run and close the
-engines (a DoomEnv closes its own at exit). `sample_world.render.make_game`, which starts every engine, installs it,
-so every command that starts one (play.py, the renderer, the policies protocol, the control check) exits in order.
+engines (a DoomEnv closes its own at exit). Every command that can start one installs it in its main: play.py,
+evaluate.py (the policies protocol), diagnose.py (the control check), the renderer and the builder.
 
 `stop_pool` ends a multiprocessing pool whose workers own engines: SIGTERM (an orderly exit in each worker), then
 SIGKILL, with the worker's own children, for a worker still there after a grace period (blocked in a hung engine).

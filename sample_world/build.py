@@ -20,6 +20,7 @@ from pathlib import Path
 from common.cli import (add_device_arg, add_hidden_alias, add_num_threads_arg, apply_cpu_settings, finite_float,
                         non_negative_int, positive_int, resolve_device, run_main)
 from common.errors import TrainingError
+from common.shutdown import exit_on_sigterm
 from sample_world.render import MAP_NAMES_HELP, TRAIN_MAPS, VAL_MAPS, WorldConfig, build_sample_world, map_name
 from magvit2.model import VQModel
 from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
@@ -136,6 +137,7 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
+    exit_on_sigterm()  # SIGTERM stops the renderer's workers and closes their engines, as Ctrl-C does
     apply_cpu_settings(args.num_threads)
     out = Path(args.output_dir)
     raw = out / "raw"

@@ -327,12 +327,12 @@ def make_game(map_name: str, cfg: WorldConfig, workdir: Optional[str] = None):
 
     The engine writes _vizdoom.ini and a _vizdoom/ folder into its working directory: `workdir` (default: the
     current one) gives it a private one, so that engines started at the same moment do not race to create them.
-    The engine is a process of its own that outlives a killed parent: SIGTERM becomes an orderly exit from here on
-    (common/shutdown.py), so that the caller's `game.close()` (a `finally`, DoomEnv's exit handler) still runs.
+    The engine is a process of its own that outlives a killed parent: the commands that start one make SIGTERM an
+    orderly exit (common/shutdown.py), so that the caller's `game.close()` (a `finally`, DoomEnv's exit handler)
+    still runs.
     """
     import vizdoom as vzd
 
-    exit_on_sigterm()
     check_maps([map_name])
     game = vzd.DoomGame()
     if workdir is not None:
@@ -518,9 +518,9 @@ def map_in_order(fn, tasks: list, workers: int, stall_timeout_s: float = STALL_T
     imap waiting forever. Here, when the next result takes longer than `stall_timeout_s`, the pool is killed and
     the tasks not yet yielded rerun in a fresh pool (a task's result depends only on its arguments); a second stall
     raises RuntimeError. Exceptions raised by fn propagate unchanged. On SIGTERM, as on Ctrl-C, the workers are
-    stopped in order: each closes its engine (common/shutdown.py).
+    stopped in order (when the command made SIGTERM an orderly exit, common/shutdown.py, the parent unwinds to the
+    `finally` below): each closes its engine.
     """
-    exit_on_sigterm()  # SIGTERM unwinds to the `finally` below rather than orphaning the workers
     done = 0
     for attempt in range(2):
         # the default start method (fork on Linux: no re-import of `data`); each worker exits in order on SIGTERM
@@ -676,6 +676,7 @@ def main(argv=None):
     p.add_argument("--workers", type=positive_int, default=2, help="processes generating episodes in parallel")
     p.add_argument("--overwrite", action="store_true", help="regenerate even if matching outputs exist")
     args = p.parse_args(argv)
+    exit_on_sigterm()  # SIGTERM stops the workers and closes their engines, as Ctrl-C does
     build_sample_world(args.output_dir, seed=args.seed, train_maps=args.train_maps, val_maps=args.val_maps,
                        train_episodes=args.train_episodes, val_episodes=args.val_episodes,
                        episode_len=args.episode_len, workers=args.workers, overwrite=args.overwrite,
