@@ -16,7 +16,7 @@ The page talks to the server through the HTTP API that scripts may use as well (
     POST /step   {"action": ["TURN_LEFT"]} (the held buttons, names as in the dataset's buttons stream; a latent
                  action id for a latent-action model) -> the next frame, image/png
     GET  /real.png   the real world's frame after the same actions (404 without a real world)
-    GET  /state      JSON: buttons, latent actions, real world or not, step, start window
+    GET  /state      JSON: buttons, latent actions, real world or not, step, start window, the decoding used
 Bad input (an unknown button, a malformed body) gets HTTP 400 and a one-line reason; the server goes on serving.
 """
 import argparse

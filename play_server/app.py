@@ -46,7 +46,7 @@ class PlaySession:
         return {"buttons": self.buttons, "latent_actions": self.env.model.config.num_latent_actions,
                 "real_world": self.real_env is not None, "step": self.info.get("step", 0),
                 "window": self.info.get("window"), "windows": len(self.env.starts) if self.env.starts else 0,
-                "steps_per_second": self.steps_per_second()}
+                "steps_per_second": self.steps_per_second(), "decoding": self.env.model.decoding.to_dict()}
 
     def steps_per_second(self) -> Optional[float]:
         recent = self.step_seconds[-20:]

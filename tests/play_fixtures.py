@@ -6,8 +6,12 @@ import torch
 
 from data import write_token_dataset
 from genie.config import GenieConfig
+from genie.decoding import DecodingConfig
 from genie.model import STMaskGIT
 from magvit2 import VQConfig, VQModel
+
+# how the main command's model is sampled (recipes/sample_world.json), and so the tiny models too
+MAIN_DECODING = DecodingConfig(temperature=1.0, copy_bias=2.0, greedy_tokens="best_neighbour")
 
 T = 4  # a short window: the context slides after a few steps
 
@@ -20,7 +24,8 @@ def tiny_tokenizer(path: Path) -> Path:
 
 
 def tiny_model(path: Path, latent: int = 0, seed: int = 0) -> Path:
-    """A random 1-layer dynamics model with a copy head, driven by 5 buttons (or `latent` latent actions)."""
+    """A random 1-layer dynamics model with a copy head, driven by 5 buttons (or `latent` latent actions), saved with
+    the main command's decoding (MAIN_DECODING)."""
     torch.manual_seed(seed)
     actions = ({"num_latent_actions": latent} if latent else
                {"action_names": ["buttons"], "action_dim": 5, "action_step_mean": True})
@@ -31,6 +36,7 @@ def tiny_model(path: Path, latent: int = 0, seed: int = 0) -> Path:
     with torch.no_grad():  # make the actions matter: a strong action projection
         if model.action_cond is not None and config.action_dim:
             model.action_cond.action_proj.weight.normal_(0, 1.0)
+    model.set_decoding(MAIN_DECODING)
     model.save_pretrained(path)
     return path
 

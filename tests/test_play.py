@@ -68,6 +68,7 @@ def test_reset_and_step_return_png_frames_with_the_real_world_beside(client, ses
     assert not np.array_equal(png_array(client.get("/real.png").content), recorded)  # the real walker turned
     state = client.get("/state").json()
     assert state["buttons"] == list(sw.BUTTON_NAMES) and state["real_world"] and state["step"] == 1
+    assert state["decoding"] == session.env.model.decoding.to_dict()
     assert client.post("/reset", json={"seed": 3}).status_code == 200
     assert client.post("/reset").status_code == 200  # an empty body: a start drawn at random
 

@@ -1,5 +1,8 @@
 """The world model as a Gymnasium environment (envs/world_model.py): the Gymnasium contract, starts, the sliding
 context and its cached step against recomputing the window, and clear errors."""
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +12,8 @@ from data import RawTokenDataset
 from genie.inference import next_frame
 from genie.reference import next_frame_recomputed
 from envs.world_model import WorldEnvError, WorldModelEnv
-from tests.play_fixtures import T, tiny_dataset, tiny_model, tiny_tokenizer
+from genie.decoding import DecodingConfig
+from tests.play_fixtures import MAIN_DECODING, T, tiny_dataset, tiny_model, tiny_tokenizer
 
 
 @pytest.fixture(scope="module")
@@ -30,6 +34,20 @@ def test_buttons_model_passes_gymnasium_check(env):
     assert env.action_space.n == 5 and env.button_names[2] == "TURN_LEFT"
     assert env.observation_space.shape == (64, 64, 3)
     check_env(env, skip_render_check=True)
+
+
+def test_the_environment_decodes_as_the_checkpoint_says_unless_told(world, one_thread):
+    recipe = json.loads((Path(__file__).resolve().parents[1] / "recipes" / "sample_world.json").read_text())
+    assert DecodingConfig.from_dict(recipe["decoding"]) == MAIN_DECODING  # the fixtures decode as the main command
+    env = WorldModelEnv.from_checkpoint(world["model"], world["data"])
+    assert env.model.decoding == MAIN_DECODING and env.model.copy_head.copy_bias == 2.0
+    greedy = WorldModelEnv.from_checkpoint(world["model"], world["data"], decoding=DecodingConfig())
+    assert greedy.model.decoding == DecodingConfig() and greedy.model.copy_head.copy_bias == 0.0
+    frames = []
+    for _ in range(2):  # greedy decoding: the same start and actions give the same frames whatever the seed
+        greedy.reset(seed=len(frames), options={"window": 1})
+        frames.append(greedy.step([0, 0, 1, 0, 0])[0])
+    np.testing.assert_array_equal(*frames)
 
 
 def test_latent_model_passes_gymnasium_check(world, one_thread):
