@@ -6,6 +6,8 @@
 For each of `--num_examples` windows starting at dataset index `--example_ind`, the first `--num_prompt_frames`
 frames are the prompt and the remaining `window_size - num_prompt_frames` frames are predicted with MaskGIT
 (autoregressively in time, or with `--teacher_force_time` from the ground truth of all earlier frames).
+Frames are sampled as the checkpoint's decoding.json says (genie/decoding.py; the published checkpoints: greedy);
+each decoding flag overrides one value, and the output's metadata.json records what was used.
 The output directory uses the token dataset layout (video.bin + metadata.json, written atomically); each example
 contributes `2 * window_size - num_prompt_frames` frames, ordered prompt | predictions | ground truth.
 

@@ -121,8 +121,8 @@ def timed_generation(model, windows, args, device, autocast, use_cache: bool, nu
     for a in range(0, len(windows), args.batch_size):
         prompt = windows[a:a + args.batch_size, :num_prompt].to(device)
         with timer(), autocast:
-            (generate if use_cache else generate_uncached)(model, prompt, windows.shape[1] - num_prompt,
-                                                           args.maskgit_steps, generator=generator)
+            (generate_frames if use_cache else generate_uncached)(model, prompt, windows.shape[1] - num_prompt,
+                                                                  args.maskgit_steps, generator=generator)
     return timer
 
 

@@ -418,7 +418,7 @@ def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_ti
 def rollout_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.device,
                      scorer: FrameScorer, per_window: Optional[list] = None, withhold_actions: bool = False) -> dict:
     """Run the rollout protocol over `loader`; return the JSON line's content (`rollout_result` and the sampler,
-    `genie.decoding.decoding_settings`). Action-conditioned models play every action row of the window (the
+    `decoding_settings`: the decoding used). Action-conditioned models play every action row of the window (the
     sampling challenge gives the future robot states), unless withhold_actions.
     per_window: when a list, each window's own scores are appended to it (`add_rollout_scores`)."""
     P = cfg.num_prompt_frames

@@ -106,7 +106,7 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
                                   "image_vocab_size": 262144, "num_prompt_frames": 8, "copy_radius": 1}))
     env.update(ALLOW_CPU="1", EPISODES="1", GENIE_CONFIG=str(config), GENERATE_ARGS="", NUM_EXAMPLES="1",
                TRAIN_MAPS="MAP01", BUILD_ARGS=f"--val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
-               LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SAMPLED_ROLLOUT_ARGS="",
+               LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SKIP_SAMPLED="1",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
                UNSEEN_DIRS=f"{tmp_path / 'none'} {tmp_path / 'world'}", STALL_RATIO="0.4", SKIP_BASELINES="1", WEIGHT_DECAY="0.1")
     env["STEPS"] = "40"  # the warm-up follows it: STEPS/20 unless WARMUP says otherwise

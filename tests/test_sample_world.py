@@ -282,7 +282,7 @@ def test_other_walker_turns_by_its_turn_speed():
 
 
 def test_build_sample_passes_turn_speed_and_workers(tmp_path, monkeypatch, capsys):
-    from magvit2 import build_sample
+    from sample_world import build as build_sample
 
     seen = {}
 
