@@ -126,10 +126,6 @@ def apply_decoding(model: STMaskGIT, overrides: dict, checkpoint, base: Optional
     logger.info("decoding: %s", ", ".join(f"{k} {v}" for k, v in decoding.to_dict().items()))
 
 
-def decoding_settings(decoding: DecodingConfig) -> dict:
-    """The sampler as a result records it."""
-    return decoding.to_dict()
-
 
 def example_indices(num_windows: int, max_examples: Optional[int], spread: bool) -> List[int]:
     """Which windows to evaluate: all, the first max_examples, or (spread) max_examples evenly spaced ones."""
@@ -301,7 +297,7 @@ def teacher_forced_run(model: STMaskGIT, loader, dataset: RawTokenDataset, cfg: 
     scorer = None if cfg.skip_lpips else frame_scorer(cfg, dataset, device)
     outputs = [] if cfg.save_outputs_dir else None
     result = teacher_forced_evaluate(model, loader, cfg, device, scorer, outputs, withhold_actions)
-    result["decoding"] = decoding_settings(model.decoding)
+    result["decoding"] = model.decoding.to_dict()
     if outputs is not None:
         save_outputs(cfg.save_outputs_dir, outputs, dataset, cfg.window_size)
     return result, scorer
@@ -418,7 +414,7 @@ def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_ti
 def rollout_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.device,
                      scorer: FrameScorer, per_window: Optional[list] = None, withhold_actions: bool = False) -> dict:
     """Run the rollout protocol over `loader`; return the JSON line's content (`rollout_result` and the sampler,
-    `decoding_settings`: the decoding used). Action-conditioned models play every action row of the window (the
+    the decoding used). Action-conditioned models play every action row of the window (the
     sampling challenge gives the future robot states), unless withhold_actions.
     per_window: when a list, each window's own scores are appended to it (`add_rollout_scores`)."""
     P = cfg.num_prompt_frames
@@ -444,7 +440,7 @@ def rollout_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.de
         num_examples += B
         progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})
-    return {**rollout_result(sums, num_examples, P, gen_time.mean), **decoding_settings(model.decoding)}
+    return {**rollout_result(sums, num_examples, P, gen_time.mean), **model.decoding.to_dict()}
 
 
 # ------------------------------------------------------------------ latent-action models

@@ -15,7 +15,7 @@ from common.config import load_json
 from common.errors import CheckpointError
 from common.integrity import update_manifest, verify_manifest
 from genie.config import GenieConfig, TrainingRecipe, save_config
-from genie.decoding import DECODING_NAME, save_decoding
+from genie.decoding import DECODING_NAME, DecodingConfig, save_decoding
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
@@ -23,10 +23,10 @@ RECIPE_NAME = "recipe.json"
 
 
 def save_model(model, save_directory: Union[str, Path], recipe: Optional[TrainingRecipe] = None,
-               run_recipe: Optional[dict] = None) -> None:
+               run_recipe: Optional[dict] = None, decoding: Optional[DecodingConfig] = None) -> None:
     """Write config.json (+ the recipe's fields, as the published file has its training knobs),
-    model.safetensors, decoding.json (`model.decoding`), recipe.json (`run_recipe`, the resolved recipe of the run
-    that trained it, when given) and their digests (MANIFEST.json, common/integrity.py).
+    model.safetensors, decoding.json (`decoding`, default `model.decoding`), recipe.json (`run_recipe`, the resolved
+    recipe of the run that trained it, when given) and their digests (MANIFEST.json, common/integrity.py).
 
     A new directory is written under a temporary name and renamed; in an existing directory each file is replaced
     atomically and other files are kept.
@@ -38,7 +38,7 @@ def save_model(model, save_directory: Union[str, Path], recipe: Optional[Trainin
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:
         save_config(tmp / CONFIG_NAME, model.config, recipe)
-        save_decoding(tmp / DECODING_NAME, model.decoding)
+        save_decoding(tmp / DECODING_NAME, model.decoding if decoding is None else decoding)
         names = [CONFIG_NAME, WEIGHTS_NAME, DECODING_NAME]
         if run_recipe is not None:
             (tmp / RECIPE_NAME).write_text(json.dumps(run_recipe, indent=2, sort_keys=True) + "\n")

@@ -281,11 +281,11 @@ class STMaskGIT(nn.Module, PyTorchModelHubMixin):
     def save_pretrained(self, save_directory: Union[str, Path], *, config=None, repo_id: Optional[str] = None,
                         push_to_hub: bool = False, model_card_kwargs: Optional[dict] = None,
                         recipe: Optional[TrainingRecipe] = None, run_recipe: Optional[dict] = None,
-                        **push_to_hub_kwargs):
-        """Write config.json (+ the training recipe, when given), model.safetensors, decoding.json (`decoding`) and
-        recipe.json (`run_recipe`, when given) atomically; `config` is ignored (the model's own GenieConfig is
-        saved)."""
-        checkpoint.save_model(self, save_directory, recipe, run_recipe)
+                        decoding: Optional[DecodingConfig] = None, **push_to_hub_kwargs):
+        """Write config.json (+ the training recipe, when given), model.safetensors, decoding.json (`decoding`, by
+        default the model's own `self.decoding`) and recipe.json (`run_recipe`, when given) atomically; `config` is
+        ignored (the model's own GenieConfig is saved)."""
+        checkpoint.save_model(self, save_directory, recipe, run_recipe, decoding)
         if push_to_hub:
             return self.push_to_hub(repo_id or Path(save_directory).name, model_card_kwargs=model_card_kwargs,
                                     **push_to_hub_kwargs)

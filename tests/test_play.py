@@ -15,22 +15,14 @@ from fastapi.testclient import TestClient  # noqa: E402
 
 from sample_world import render as sw  # noqa: E402
 from envs.world_model import WorldModelEnv  # noqa: E402
-from sample_world.build import tokenize_split  # noqa: E402
 from envs.pairing import real_world_for  # noqa: E402
 from play_server.app import PlaySession, build_app  # noqa: E402
-from tests.play_fixtures import tiny_model, tiny_tokenizer  # noqa: E402
+from tests.play_fixtures import tiny_play_world  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    """A tiny sample world (raw walks + their token dataset) and a tiny model driven by its buttons."""
-    root = tmp_path_factory.mktemp("play")
-    tokenizer = tiny_tokenizer(root / "tokenizer")
-    cfg = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)
-    sw.build_sample_world(root / "raw", train_maps=("MAP01",), val_maps=("MAP01",), train_episodes=1,
-                          episode_len=120, workers=1, cfg=cfg)
-    tokenize_split([root / "raw" / "val.npz"], root / "val", tokenizer, str(tokenizer), 8, "cpu", False)
-    return {"root": root, "data": root / "val", "model": tiny_model(root / "model"), "tokenizer": tokenizer}
+    return tiny_play_world(tmp_path_factory.mktemp("play"))
 
 
 @pytest.fixture(scope="module")

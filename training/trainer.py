@@ -7,11 +7,10 @@ state, the step, the data position and the weight average. A run resumed from a 
 the uninterrupted run would have taken, as long as the data order (seed, dataset, batch size, process count) is
 the same.
 """
-import contextlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Optional, Tuple
+from typing import Optional, Tuple
 
 import torch
 from accelerate import Accelerator
@@ -57,21 +56,6 @@ class SavedWith:
     recipe: TrainingRecipe
     decoding: DecodingConfig = field(default_factory=DecodingConfig)
     run_recipe: Optional[dict] = None
-
-
-@contextlib.contextmanager
-def decoding_set(models: Iterable, decoding: DecodingConfig):
-    """Each model set to `decoding` for the block, then set back: the copy head adds copy_bias in every forward
-    pass, training's included, so the decoding may only be on the model while it is written."""
-    models = list(models)
-    previous = [m.decoding for m in models]
-    for m in models:
-        m.set_decoding(decoding)
-    try:
-        yield
-    finally:
-        for m, d in zip(models, previous):
-            m.set_decoding(d)
 
 
 class Trainer:
@@ -226,9 +210,8 @@ class Trainer:
         if self.accelerator.is_main_process:
             path = checkpoint_dir(self.cfg.output_dir, self.step)
             extra = {EMA_DIR: self.ema.model} if self.ema else {}
-            with decoding_set([self.model, *extra.values()], self.saved_with.decoding):
-                save_training_checkpoint(path, self.model, self.optimizer, self.trainer_state(), rng_states,
-                                         model_kwargs=self._model_kwargs(), extra_models=extra or None)
+            save_training_checkpoint(path, self.model, self.optimizer, self.trainer_state(), rng_states,
+                                     model_kwargs=self._model_kwargs(), extra_models=extra or None)
             prune_checkpoints(self.cfg.output_dir, self.cfg.checkpoints_total_limit)
             logger.info("saved training state to %s", path)
         self.last_saved_step = self.step
@@ -249,7 +232,7 @@ class Trainer:
         if self.accelerator.is_main_process:
             path = Path(self.cfg.output_dir) / "final_checkpt"
             model = self.final_model()
-            with atomic_directory(path, "the final model") as tmp, decoding_set([model], self.saved_with.decoding):
+            with atomic_directory(path, "the final model") as tmp:
                 model.save_pretrained(tmp, **self._model_kwargs())
             if self.ema:
                 logger.info("saved the weight average of %d steps (--ema_decay %g) to %s; the last step's own "
@@ -260,4 +243,6 @@ class Trainer:
         self.accelerator.wait_for_everyone()
 
     def _model_kwargs(self) -> dict:
-        return {"recipe": self.saved_with.recipe, "run_recipe": self.saved_with.run_recipe}
+        # the decoding goes to decoding.json, never onto the model: the copy head would add copy_bias in training
+        return {"recipe": self.saved_with.recipe, "run_recipe": self.saved_with.run_recipe,
+                "decoding": self.saved_with.decoding}
