@@ -20,8 +20,18 @@ horizon against the true frames, next to "hold", repeating the last prompt frame
 rollout_psnr, hold_psnr, rollout_ssim, hold_ssim, rollout_lpips, hold_lpips (lists over horizons; LPIPS null with
 --skip_lpips); rollout_unchanged, true_unchanged (the share of tokens equal to the same position one frame earlier)
 and rollout_repeated, true_repeated (equal to their left neighbour): a rollout that freezes or flattens; each list
-with its _mean; rollout_far_psnr, hold_far_psnr (the last horizon); the sampler (maskgit_steps, temperature,
+with its _mean; where the dataset is a sample world split with its raw frames beside it, the same scores against
+the real frames instead of the decoded true tokens: rollout_real_*, hold_real_* (holding the last real prompt frame)
+and tokenizer_real_* (the tokenizer's reconstruction of the true frames, the ceiling of any model that speaks its
+tokens), each * in psnr, ssim, lpips; rollout_far_psnr, hold_far_psnr (the last horizon); the sampler (maskgit_steps, temperature,
 unmask_mode, copy_bias, greedy_tokens, stall_ratio); gen_time (s per generated frame); num_examples.
+
+Play (--protocol play, evaluation/play_protocol.py): what a player sees, over a minute of play. From starts spread
+over a sample world split's recorded walks, the model gets --num_prompt_frames real frames and replays the walk's
+buttons for --play_steps steps (default 64, 27 s), sliding its context over its own frames; each step is scored
+against the real frame (not its tokens) by PSNR, LPIPS, sharpness and, per horizon bin, KID, beside the tokenizer's
+own reconstruction (the ceiling) and holding the last real frame. Keys: protocol, data_dir, steps, prompt_frames,
+num_starts, decoding, per_step and per_bin ({model, tokenizer, hold} x {psnr, lpips, sharpness, kid_x1000}).
 
 Decoding: a model samples as its checkpoint's decoding.json says (what it was trained to be sampled with; the
 published checkpoints have none and decode as the published code: greedy, 2 MaskGIT steps); each decoding flag
@@ -44,11 +54,14 @@ from common.cli import run_main, setup_logging
 from common.shutdown import exit_on_sigterm
 from data import RawTokenDataset
 from training.action_streams import LATENT_ACTION_NAME, latent_action_sidecar
-from evaluation.cli import (POLICIES_HELP, add_policy_args, add_protocol_args, add_save_outputs_arg, add_window_args,
-                            check_policy_args, check_protocol_args, check_window_args, eval_config, policy_config)
+from evaluation.cli import (PLAY_HELP, POLICIES_HELP, add_play_args, add_policy_args, add_protocol_args,
+                            add_save_outputs_arg, add_window_args, check_policy_args, check_protocol_args,
+                            check_window_args, eval_config, play_config, policy_config)
+from evaluation.play_protocol import bin_lines, run_play
 from evaluation.policy_ranking import run_policies
 from evaluation.protocols import (EvalConfig, EvaluationError, delta_psnr, frame_scorer, load_model,  # noqa: F401
-                                  model_windows, rollout_evaluate, start_process, teacher_forced_run)
+                                  model_windows, real_frames_of, rollout_evaluate, start_process,
+                                  teacher_forced_run)
 from genie.model import STMaskGIT
 from lam.data import valid_targets
 from lam.probe import action_probe, transition_labels
@@ -62,7 +75,7 @@ BUTTONS_NAME = "buttons"  # the sample world's true actions, labels of the laten
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="evaluate.py", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_protocol_args(parser, ("policies",), POLICIES_HELP)
+    add_protocol_args(parser, ("policies", "play"), POLICIES_HELP + PLAY_HELP)
     add_window_args(parser)
     add_save_outputs_arg(parser)
     parser.add_argument("--delta_psnr_seeds", type=int, default=1,
@@ -74,6 +87,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="Teacher-forced protocol, latent-action checkpoints: the token dataset whose latent "
                              "actions and buttons fit the latent action probe (default: %(default)s).")
     add_policy_args(parser)
+    add_play_args(parser)
     args = parser.parse_args(argv)
     check_window_args(parser, args)
     check_policy_args(parser, args)
@@ -136,12 +150,18 @@ def run(args: argparse.Namespace) -> dict:
     """The JSON line of --protocol on --checkpoint_dir and --val_data_dir."""
     if args.protocol == "policies":
         return run_policies(policy_config(args))
+    if args.protocol == "play":
+        result = run_play(play_config(args))
+        for line in bin_lines(result):
+            logger.info(line)
+        return result
     cfg = eval_config(args)
     device = start_process(cfg.device, cfg.num_threads, cfg.seed)
     model = load_model(cfg, device, teacher_forced_protocol=args.protocol == "teacher_forced")
-    dataset, _, loader = model_windows(model, cfg)
+    dataset, indices, loader = model_windows(model, cfg)
     if args.protocol == "rollout":
-        return rollout_evaluate(model, loader, cfg, device, frame_scorer(cfg, dataset, device, "rollout"))
+        return rollout_evaluate(model, loader, cfg, device, frame_scorer(cfg, dataset, device, "rollout"),
+                                real=real_frames_of(dataset, indices, cfg.stride))
     return teacher_forced_result(model, loader, dataset, cfg, device, args.train_data_dir, args.delta_psnr_seeds)
 
 

@@ -229,7 +229,9 @@ class WorldModelEnv(gym.Env):
         Once T frames are known the oldest is dropped: the context keeps the last T-1."""
         if self._tokens is None:
             raise WorldEnvError("call reset() before step()")
-        row = self.action_row(action)
+        return self._inputs_with(self.action_row(action))
+
+    def _inputs_with(self, row: torch.Tensor):
         tokens, actions, latent = self._tokens, self._actions.clone(), self._latent
         if len(tokens) == self.T:
             tokens, actions, latent = tokens[1:], actions[1:], latent[1:]
@@ -239,7 +241,22 @@ class WorldModelEnv(gym.Env):
         return tokens, actions, torch.cat([latent, new_latent])
 
     def step(self, action):
-        tokens, actions, latent = self.step_inputs(action)
+        return self._advance(*self.step_inputs(action))
+
+    def step_row(self, row):
+        """Step with a model action row instead of an action: a recorded walk's row as the dataset gives it (with
+        action_step_mean, a button's share of the step's tics, so not always 0 or 1); (D,) finite values, for a
+        model with real actions. What replaying a recorded walk needs (evaluation/play_protocol.py)."""
+        dim = self.model.config.action_dim
+        r = np.asarray(row, dtype=np.float32)
+        if not dim or self.latent or r.shape != (dim,) or not np.isfinite(r).all():
+            raise WorldEnvError(f"step_row needs a model with real actions and a row of {dim} finite values, got "
+                                f"{row!r}")
+        if self._tokens is None:
+            raise WorldEnvError("call reset() before step_row()")
+        return self._advance(*self._inputs_with(torch.from_numpy(r)))
+
+    def _advance(self, tokens, actions, latent):
         # a cache that does not hold exactly this context (after a slide: none is kept) is recomputed
         decoding = self.model.decoding
         new_frame, self._cache = next_frame(self.model, tokens, actions, latent, self._cache, decoding.maskgit_steps,

@@ -203,6 +203,15 @@ def check_protocol_args(parser, args: argparse.Namespace) -> None:
     """Usage errors of flags that one protocol only takes (`add_protocol_args`, `add_save_outputs_arg`,
     `add_per_window_arg` where the parser has them)."""
     per_window = getattr(args, "per_window_out", None)
+    if args.protocol == "play":
+        if args.save_outputs_dir is not None:
+            parser.error("--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol play")
+        if args.play_steps < 1 or args.starts_per_episode < 1:
+            parser.error(f"--play_steps and --starts_per_episode must be >= 1, got {args.play_steps} and "
+                         f"{args.starts_per_episode}")
+        return
+    if getattr(args, "figures_dir", None) is not None:
+        parser.error("--figures_dir applies to --protocol play only")
     if args.protocol == "policies":
         if args.save_outputs_dir is not None:
             parser.error("--save_outputs_dir writes teacher-forced predictions; it does not apply to --protocol "
@@ -221,6 +230,35 @@ def check_protocol_args(parser, args: argparse.Namespace) -> None:
         if per_window is not None:
             parser.error("--per_window_out applies to --protocol rollout only (the teacher-forced protocol's "
                          "predictions: --save_outputs_dir)")
+
+
+# ------------------------------------------------------------------ the play protocol
+PLAY_HELP = ("; play: from real starts of a sample world split, replay each recorded walk's buttons for --play_steps "
+             "steps and score every step against the real frames (PSNR, LPIPS, sharpness, KID per horizon bin) beside "
+             "the tokenizer's reconstruction and holding the last real frame (evaluation/play_protocol.py)")
+
+
+def add_play_args(parser) -> None:
+    group = parser.add_argument_group("play protocol", "What a player sees, against the real pixels (--protocol "
+                                                       "play; --num_prompt_frames: real frames given, default the "
+                                                       "model's; the decoding flags override the model's sampler).")
+    group.add_argument("--play_steps", type=int, default=64,
+                       help="Steps of play from each start, 15 tics each (default: %(default)s, 27 s).")
+    group.add_argument("--starts_per_episode", type=int, default=2,
+                       help="Starts spread over each recorded walk (default: %(default)s).")
+    group.add_argument("--figures_dir", default=None,
+                       help="Write play_curves.png (the scores per step and KID per bin) and play_drive.gif (the "
+                            "first start's drive: model | tokenizer | real) here (default: none).")
+
+
+def play_config(args: argparse.Namespace):
+    """The PlayConfig of evaluate.py's parsed command line."""
+    from evaluation.play_protocol import PlayConfig
+
+    return PlayConfig(data_dir=args.val_data_dir, checkpoint_dir=args.checkpoint_dir, steps=args.play_steps,
+                      starts_per_episode=args.starts_per_episode, prompt_frames=args.num_prompt_frames,
+                      tokenizer_ckpt=args.tokenizer_ckpt, decoding=decoding_overrides(args), seed=args.seed,
+                      figures_dir=args.figures_dir, device=args.device, num_threads=args.num_threads)
 
 
 # ------------------------------------------------------------------ the policies protocol

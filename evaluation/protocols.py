@@ -161,6 +161,51 @@ def model_windows(model: STMaskGIT, cfg: EvalConfig,
     return dataset, indices, loader
 
 
+def raw_frames_path(data_dir) -> Path:
+    """Where a sample world keeps the real frames of the token dataset `<root>/<split>`: `<root>/raw/<split>.npz`
+    (it may not exist: the 1X data has tokens only)."""
+    data_dir = Path(data_dir)
+    return data_dir.parent / "raw" / f"{data_dir.name}.npz"
+
+
+def load_real_frames(raw_npz: Path, num_images: int) -> np.ndarray:
+    """The real frames (N, H, W, 3) uint8 of a raw .npz (memory-mapped), checked to be as many as the token
+    dataset's `num_images`."""
+    with np.load(raw_npz, mmap_mode="r") as npz:
+        if "frames" not in npz.files:
+            raise DataMismatchError(f"{raw_npz}: no 'frames' array (found {npz.files})")
+        frames = npz["frames"]
+    if frames.ndim != 4 or frames.shape[-1] != 3 or len(frames) != num_images:
+        raise DataMismatchError(f"{raw_npz}: frames {frames.shape} do not match the token dataset's {num_images} "
+                                f"images (rebuild the split with build.sh)")
+    return frames
+
+
+@dataclass
+class RealFrames:
+    """The real frames of evaluated windows: `frames` (N, H, W, 3) uint8 of the whole dataset, and the first frame
+    of each window in the loader's order, `stride` frames apart."""
+    frames: np.ndarray
+    first_frames: List[int]
+    stride: int
+
+    def windows(self, start: int, count: int, T: int) -> torch.Tensor:
+        """The real frames of windows start..start+count-1 of the loader's order, (count, T, H, W, 3) uint8."""
+        inds = np.asarray(self.first_frames[start:start + count])[:, None] + self.stride * np.arange(T)
+        return torch.from_numpy(np.ascontiguousarray(self.frames[inds]))
+
+
+def real_frames_of(dataset: RawTokenDataset, indices: List[int], stride: int) -> Optional[RealFrames]:
+    """RealFrames of the windows `indices` when the dataset is a sample world's split with its raw frames beside it,
+    else None."""
+    raw_npz = raw_frames_path(dataset.data_dir)
+    if not raw_npz.is_file():
+        return None
+    frames = load_real_frames(raw_npz, dataset.metadata["num_images"])
+    logger.info("scoring futures against the real frames of %s too", raw_npz)
+    return RealFrames(frames, [int(dataset.valid_start_inds[i]) for i in indices], stride)
+
+
 class FrameScorer:
     """Decodes token frames with the MAGVIT2 tokenizer and scores predictions with AlexNet LPIPS (with_lpips=False:
     decoding only, no LPIPS weights needed)."""
@@ -372,6 +417,23 @@ def add_rollout_scores(sums: dict, scorer: FrameScorer, tokens_BTHW: torch.Tenso
         per_window.extend({key: lists[key][b] for key in lists} for b in range(tokens_BTHW.shape[0]))
 
 
+def add_real_scores(sums: dict, scorer: FrameScorer, tokens_BTHW: torch.Tensor, x_BTHW: torch.Tensor,
+                    real_BTHW3: torch.Tensor, P: int, with_lpips: bool) -> None:
+    """Add per-horizon scores against the real frames (B, T, H, W, 3) to sums, in place: of the generated frames
+    ("rollout_real_*"), of the tokenizer's reconstruction of the true frames ("tokenizer_real_*", the ceiling of any
+    model speaking its tokens) and of holding the last real prompt frame ("hold_real_*")."""
+    B, T = tokens_BTHW.shape[:2]
+    h = T - P
+    truth = real_BTHW3[:, P:].to(tokens_BTHW.device)
+    worlds = {"rollout": decode_frames(scorer, tokens_BTHW[:, P:].flatten(0, 1)).unflatten(0, (B, h)),
+              "tokenizer": decode_frames(scorer, x_BTHW[:, P:].flatten(0, 1)).unflatten(0, (B, h)),
+              "hold": real_BTHW3[:, P - 1:P].to(truth.device).expand(-1, h, -1, -1, -1)}
+    for name, images in worlds.items():
+        for metric, values_Bh in image_scores(scorer, images, truth, with_lpips).items():
+            key = f"{name}_real_{metric}"
+            sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
+
+
 def write_per_window(path, per_window: list, dataset: RawTokenDataset, indices: List[int]) -> None:
     """Write --per_window_out: one JSON line per evaluated window (in `indices` order, as the loader gave them),
     its place in `dataset` first, then its scores; atomically, creating the parent directory."""
@@ -394,11 +456,15 @@ def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_ti
     """The rollout JSON line from per-horizon score sums {"rollout_psnr": (h,), ...} over windows:
     protocol ("rollout"), num_prompt_frames; per horizon h = 1..T-P (lists, means over windows) rollout_psnr,
     hold_psnr, rollout_ssim, hold_ssim, rollout_lpips, hold_lpips (null without LPIPS), rollout_unchanged,
-    true_unchanged, rollout_repeated, true_repeated (`token_statistics`); each with its _mean over horizons;
+    true_unchanged, rollout_repeated, true_repeated (`token_statistics`); where the dataset has real frames,
+    {rollout,tokenizer,hold}_real_{psnr,ssim,lpips} (`add_real_scores`); each with its _mean over horizons;
     rollout_far_psnr, hold_far_psnr (the last horizon's PSNR); gen_time (s per generated frame); num_examples."""
     result = {"protocol": "rollout", "num_prompt_frames": num_prompt_frames}
     keys = [f"{name}_{metric}" for metric in ("psnr", "ssim", "lpips") for name in ("rollout", "hold")]
     keys += [f"{name}_{stat}" for stat in ("unchanged", "repeated") for name in ("rollout", "true")]  # token_statistics
+    # against the real frames, only where the dataset has them (a sample world; `add_real_scores`)
+    keys += [key for key in (f"{name}_real_{metric}" for metric in ("psnr", "ssim", "lpips")
+                             for name in ("rollout", "tokenizer", "hold")) if key in sums]
     for key in keys:  # LPIPS is missing from the sums with --skip_lpips
         result[key] = (sums[key] / num_examples).tolist() if key in sums and num_examples else None
     for key in keys:
@@ -412,11 +478,13 @@ def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_ti
 
 @torch.no_grad()
 def rollout_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.device,
-                     scorer: FrameScorer, per_window: Optional[list] = None, withhold_actions: bool = False) -> dict:
+                     scorer: FrameScorer, per_window: Optional[list] = None, withhold_actions: bool = False,
+                     real: Optional[RealFrames] = None) -> dict:
     """Run the rollout protocol over `loader`; return the JSON line's content (`rollout_result` and the sampler,
     the decoding used). Action-conditioned models play every action row of the window (the
     sampling challenge gives the future robot states), unless withhold_actions.
-    per_window: when a list, each window's own scores are appended to it (`add_rollout_scores`)."""
+    per_window: when a list, each window's own scores are appended to it (`add_rollout_scores`). real: the windows'
+    real frames (`real_frames_of`), when the futures are also scored against them (`add_real_scores`)."""
     P = cfg.num_prompt_frames
     with_lpips = not cfg.skip_lpips
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
@@ -437,6 +505,8 @@ def rollout_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.de
         gen_time.update(time.perf_counter() - start, B * (T - P))
 
         add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips, per_window)
+        if real is not None:
+            add_real_scores(sums, scorer, tokens_BTHW, x_BTHW, real.windows(num_examples, B, T), P, with_lpips)
         num_examples += B
         progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})

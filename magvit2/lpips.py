@@ -219,3 +219,21 @@ class LPIPS(nn.Module):
                 dist_B = dist_B + weighted_B1HW.mean(dim=(1, 2, 3))
                 head += 1
         return dist_B
+
+    @torch.no_grad()
+    def pooled_features(self, x_B3HW: torch.Tensor) -> torch.Tensor:
+        """Images (B, 3, H, W) in [-1, 1] -> (B, 1152) float32: at each of the five layers LPIPS compares, the
+        unit-normalized features averaged over space and scaled by sqrt(channels), concatenated. A fixed, offline
+        embedding for distances between sets of images (KID), seeing what LPIPS sees. The scale gives the entries
+        unit size, as KID's kernel (x.y / d + 1)^3 expects; unit vectors would leave it nearly linear."""
+        if x_B3HW.ndim != 4 or x_B3HW.shape[1] != 3 or min(x_B3HW.shape[-2:]) < MIN_SIDE:
+            raise ValueError(f"pooled_features expects (B, 3, H, W) images of at least {MIN_SIDE}x{MIN_SIDE}, got "
+                             f"{tuple(x_B3HW.shape)}")
+        x_BCHW = (x_B3HW.to(self.shift.dtype) - self.shift) / self.scale
+        pooled = []
+        for i, layer in enumerate(self.features):
+            x_BCHW = layer(x_BCHW)
+            if i in TAP_INDICES:
+                pooled.append(normalize_channels(x_BCHW.float()).mean(dim=(2, 3)) * x_BCHW.shape[1] ** 0.5)
+        return torch.cat(pooled, dim=1)
+
