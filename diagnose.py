@@ -56,13 +56,19 @@ metrics (delta_psnr, the probe), plus "actions_withheld": true."""
 
 CONTROL_DOC = """\
 Does the model obey its controls? From --num_starts windows spread over --val_data_dir, the world model environment
-holds TURN_LEFT, TURN_RIGHT and MOVE_FORWARD for --steps steps each, from the same start and sampler seed, and the
-horizontal shift between consecutive frames is measured by phase correlation (pixels per step; positive: the image
-moves right, as when the view turns left). The same starts and buttons are played in the real world beside when the
-data is a sample world's split (evaluation/control_check.py). The model decodes as its checkpoint says unless the
-decoding flags override it. The JSON line has "model" and "real" summaries (mean_shift per action,
-opposite_turns_share, left_right_share, forward_less_sideways_share, forward_less_sideways_mean), "per_start" and the
-"decoding" used."""
+holds each button alone (TURN_LEFT, TURN_RIGHT, MOVE_FORWARD, MOVE_BACKWARD, USE) and NONE (no button) for --steps
+steps, from the same start and sampler seed. Each pair of consecutive frames gives the horizontal shift by phase
+correlation (pixels per step; positive: the image moves right, as when the view turns left) and the forward motion:
+the motion estimator's (--motion_estimator, map units; the policies protocol trains it) when that file exists, else
+the zoom of the image about its centre (percent; positive: growing, as when walking forward). The checks: the turns
+shift the image opposite ways, forward shifts it less sideways than the turns, forward moves forward and backward
+back, NONE and USE alone keep it still (under a quarter of forward's motion and of the turns' shift). The same
+starts and controls are played in the real world beside when the data is a sample world's split
+(evaluation/control_check.py). The model decodes as its checkpoint says unless the decoding flags override it. The
+JSON line has "model" and "real" summaries (mean_shift and mean_forward per control, "checks" and "passed", the
+shares of starts where each control shows: opposite_turns_share, left_right_share, forward_less_sideways_share,
+forward_share, backward_share, forward_backward_share, none_still_share, use_still_share), "forward_measure",
+"per_start" and the "decoding" used."""
 
 BASELINES_DOC = """\
 The baselines of a validation split, the same for every model (evaluation/baselines.py): copying the last frame's
@@ -191,6 +197,9 @@ def add_control_parser(subparsers) -> None:
     parser.add_argument("--steps", type=int, default=defaults.steps,
                         help="Steps each button is held (default: %(default)s).")
     parser.add_argument("--no_real_world", action="store_true", help="Do not play the real world as the reference.")
+    parser.add_argument("--motion_estimator", default=defaults.motion_estimator,
+                        help="Motion estimator weights that measure forward motion (default: %(default)s); when the "
+                             "file is missing, the zoom between frames does.")
     parser.add_argument("--seed", type=int, default=defaults.seed,
                         help="Sampler seed of the first start (default: %(default)s).")
     add_num_threads_arg(parser)
@@ -207,7 +216,7 @@ def run_control_args(args: argparse.Namespace) -> dict:
     return run_control(ControlConfig(
         checkpoint_dir=args.checkpoint_dir, val_data_dir=args.val_data_dir, tokenizer_ckpt=args.tokenizer_ckpt,
         num_starts=args.num_starts, steps=args.steps, seed=args.seed, decoding=decoding_overrides(args),
-        real_world=not args.no_real_world, num_threads=args.num_threads))
+        real_world=not args.no_real_world, num_threads=args.num_threads, motion_estimator=args.motion_estimator))
 
 
 # ------------------------------------------------------------------ baselines

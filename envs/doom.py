@@ -25,7 +25,7 @@ from gymnasium import spaces
 from common.errors import InputError
 from sample_world.render import (BUTTON_NAMES, HZ, SIDECAR_NAME, STEP_TICS, VAL_MAPS, WorldConfig,  # noqa: F401
                                  buttons_from_names, check_maps, engine_action, gamma_table, make_game,
-                                 preprocess_frame, start_walk)
+                                 preprocess_frame, sidecar_world_config, start_walk)
 
 MAX_START_FRAME = 1500  # recorded tics a random start walks before it begins (a recorded walk's length)
 
@@ -44,11 +44,12 @@ def check_buttons(action, num_buttons: int) -> np.ndarray:
 
 
 def world_config(raw_dir) -> WorldConfig:
-    """The WorldConfig a sample world was rendered with (raw_dir/sample_world.json)."""
+    """The WorldConfig a sample world was rendered with (raw_dir/sample_world.json), its walker included: an older
+    world's walker replays its recorded walks (sample_world.render.sidecar_world_config)."""
     path = Path(raw_dir) / SIDECAR_NAME
     if not path.is_file():
         raise EnvInputError(f"{path} not found: not the raw folder of a sample world (sample_world.build writes it)")
-    return WorldConfig(**json.loads(path.read_text())["config"])
+    return sidecar_world_config(json.loads(path.read_text()))
 
 
 def recorded_start(raw_npz, frame_index: int) -> dict:

@@ -107,9 +107,11 @@ def run_withheld_actions(cfg: EvalConfig, protocol: str, per_window_out: Optiona
 # ------------------------------------------------------------------ control
 @dataclass
 class ControlConfig:
-    """The control check: num_starts windows spread over val_data_dir, each button held for `steps` steps, the
-    sampler seeded with `seed`; the model of checkpoint_dir decoding as its checkpoint says, overridden by `decoding`
-    (DecodingConfig fields); the real world beside it unless real_world is False."""
+    """The control check: num_starts windows spread over val_data_dir, each control (every button, and none) held
+    for `steps` steps, the sampler seeded with `seed`; the model of checkpoint_dir decoding as its checkpoint says,
+    overridden by `decoding` (DecodingConfig fields); the real world beside it unless real_world is False. Forward
+    motion is measured by the motion estimator at motion_estimator (the one the policies protocol trains into its
+    policy folder) when that file exists, else by the zoom between frames."""
     checkpoint_dir: str = "data/genie_model/final_checkpt"
     val_data_dir: str = "data/unseen/val"
     tokenizer_ckpt: Optional[str] = None
@@ -119,13 +121,17 @@ class ControlConfig:
     decoding: Dict[str, Any] = field(default_factory=dict)
     real_world: bool = True
     num_threads: int = 0
+    motion_estimator: str = "data/policies/motion_estimator.safetensors"
 
 
 def run_control(cfg: ControlConfig) -> dict:
     from envs.pairing import real_world_for
     from envs.world_model import WorldModelEnv
-    from evaluation.control_check import control_check
+    from pathlib import Path
+
+    from evaluation.control_check import control_check, summary_lines
     from evaluation.protocols import example_indices
+    from sample_world.motion_estimator import load_motion_estimator
 
     start_process("cpu", cfg.num_threads, cfg.seed)
     env = WorldModelEnv.from_checkpoint(cfg.checkpoint_dir, cfg.val_data_dir, cfg.tokenizer_ckpt, device="cpu")
@@ -136,15 +142,21 @@ def run_control(cfg: ControlConfig) -> dict:
     real_env, raw_npz = real_world_for(env, cfg.val_data_dir) if cfg.real_world else (None, None)
     if real_env is None:
         logger.info("no real world to compare with: %s", raw_npz)
+    estimator = None
+    if Path(cfg.motion_estimator).is_file():
+        estimator = load_motion_estimator(cfg.motion_estimator)
+        logger.info("forward motion: the motion estimator %s (map units per step)", cfg.motion_estimator)
+    else:
+        logger.info("forward motion: the zoom between frames (%s not found; ./evaluate.py --protocol policies "
+                    "trains it)", cfg.motion_estimator)
     starts = example_indices(len(env.starts), cfg.num_starts, spread=True)
-    result = control_check(env, starts, cfg.steps, cfg.seed, real_env, raw_npz if real_env else None)
+    result = control_check(env, starts, cfg.steps, cfg.seed, real_env, raw_npz if real_env else None,
+                           estimator=estimator)
+    unit = "map units" if estimator is not None else "zoom %"
     for world in ("model", "real"):
         if result[world] is not None:
-            r = result[world]
-            logger.info("%s: mean shift per step %s px; opposite turns in %.0f %% of starts (left right, right "
-                        "left in %.0f %%); forward less sideways than both turns in %.0f %%", world,
-                        {a: round(v, 2) for a, v in r["mean_shift"].items()}, 100 * r["opposite_turns_share"],
-                        100 * r["left_right_share"], 100 * r["forward_less_sideways_share"])
+            for line in summary_lines(world, result[world], unit):
+                logger.info(line)
     return {"checkpoint_dir": str(cfg.checkpoint_dir), "val_data_dir": str(cfg.val_data_dir),
             "temperature": env.model.decoding.temperature, "seed": cfg.seed, "decoding": env.model.decoding.to_dict(),
-            **result}
+            "motion_estimator": str(cfg.motion_estimator) if estimator is not None else None, **result}

@@ -23,6 +23,16 @@ robot's pace rather than a gamer's), so that one model step (15 tics) turns the 
 at most ~62 units instead of 53 degrees and 125: consecutive model frames overlap well. WorldConfig(turn_speed=1.75)
 gives the walker of earlier versions (26 degrees per step).
 
+The walker (`ExplorerPolicy`) explores: it mostly walks forward, curves away from walls ahead and turns in place
+when one is close (the depth buffer). A policy suite and a player use every button, and a model learns only what
+its windows show (one button row every 15 tics), so since version 3 the walker also holds, each for at least one
+window step (15-45 tics): backward walks (alone or with a turn), no button at all, backing away from a wall while
+turning, a forward walk turned straight into a backward one (shuttling), and USE at walls ahead (walking up to
+within reach first; with or without forward, then waiting while a door, if it is one, opens). Over the tics of a
+split, about: forward (with or without a turn) 43 %, turn in place 35 %, backward 12 %, no button 7 %, USE 4 %;
+the sidecar records each split's shares (`button_stats`). Version 2's walker (V2_WALKER) pressed backward in 1 % of
+the tics, USE for single tics (which windows almost never show) and never stood still.
+
 Episodes start at a random deathmatch spawn spot (chosen by the engine seed) after an unrecorded warm-up walk of
 random length, in god mode (damaging floors). An episode that a teleporter or a level exit cuts short, or whose
 walker stays trapped in a closet, is replayed with the next seed (is_good_episode). Validation = held-out episodes
@@ -68,8 +78,9 @@ HELDOUT_MAPS = ("MAP18",)
 # numbers stay comparable across versions) and on the held-out map.
 VAL_MAPS = TRAIN_MAPS[:8] + HELDOUT_MAPS
 MAX_STEP = 30.0  # map units per tic; Doom caps momentum here, so a longer step is a teleport
-GENERATOR_VERSION = 2  # bump when a change in this file changes the generated data
+GENERATOR_VERSION = 3  # bump when a change in this file changes the generated data
 SIDECAR_NAME = "sample_world.json"
+STATS_KEY = "button_stats"  # the sidecar's key of what was generated (the rest: what was asked for)
 STALL_TIMEOUT_S = 600.0  # seconds without a finished task before a worker pool is declared stuck (a task: ~5 s)
 
 
@@ -94,14 +105,16 @@ _ACTIONS = {
     "left": (0, 0, 1, 0, 0),
     "right": (0, 0, 0, 1, 0),
     "backward": (0, 1, 0, 0, 0),
-    "use": (1, 0, 0, 0, 1),
+    "backward_left": (0, 1, 1, 0, 0),
+    "backward_right": (0, 1, 0, 1, 0),
+    "stand": (0, 0, 0, 0, 0),
+    "approach": (1, 0, 0, 0, 0),  # walking up to a wall to press USE on it
 }
 _FORWARD_ACTIONS = ("forward", "forward_left", "forward_right")
 
-
 @dataclass
 class WorldConfig:
-    """Rendering and explorer-policy settings. Depth thresholds are in depth-buffer units (about 7 map units each)."""
+    """Rendering and explorer-policy settings. Depth thresholds are in depth-buffer units (about 8 map units each)."""
 
     frame_size: int = 64  # output frames are frame_size x frame_size RGB
     gamma: float = 1.5  # brighten Doom's dark sectors (like its own gamma-correction setting); 1 = unchanged
@@ -110,17 +123,32 @@ class WorldConfig:
     warmup_min_tics: int = 35  # unrecorded warm-up walk of random length in [min, max] tics (the player is
     warmup_max_tics: int = 400  # frozen for the first few tics of an episode)
     near_depth: int = 12  # obstacle closer than this straight ahead: turn in place ...
-    clear_depth: int = 28  # ... until the way ahead is free at least this far
+    clear_depth: int = 20  # ... until the way ahead is free at least this far (version 2: 28, longer turns)
     caution_depth: int = 20  # closer than this: curve away while walking
     stuck_window: int = 12  # tics of forward motion over which we check progress
     stuck_distance: float = 10.0  # map units; less progress than this over the window means stuck
-    use_prob: float = 0.5  # chance to press USE (open a door) when stuck
-    use_wait_tics: int = 30  # keep pushing forward this long after USE while a door opens
-    forward_weight: float = 0.58  # weights of the macro actions sampled when a hold expires
-    curve_weight: float = 0.25
-    turn_weight: float = 0.12
-    backward_weight: float = 0.05
     open_side_prob: float = 0.7  # chance that a random turn goes towards the more open side
+    # What the walker does when a hold expires: weights of the macro actions (forward, forward + a turn, a turn in
+    # place, backward, no button), and how long the sticky ones last: at least one window step, so models see them.
+    forward_weight: float = 0.55
+    curve_weight: float = 0.25
+    turn_weight: float = 0.04  # walls make turns in place plenty (avoid, turn around)
+    backward_weight: float = 0.06
+    stand_weight: float = 0.2
+    sticky_min_tics: int = 15  # a backward walk, a stand or a backing away lasts [min, max] tics
+    sticky_max_tics: int = 45
+    backward_turn_share: float = 0.4  # share of the sampled backward walks that hold a turn too
+    reverse_prob: float = 0.15  # chance that an expiring forward hold turns straight into a backward one (shuttle)
+    avoid_backward_prob: float = 0.5  # chance that a turn away from a wall (avoid, turn around) backs away first
+    # USE: at a wall ahead (a door, perhaps) and when stuck.
+    door_use_prob: float = 0.35  # chance that a wall ahead gets a USE: walk up to it, then press
+    door_depth: int = 6  # walk up until the wall is this close (~48 units; Doom's USE reaches 64) ...
+    approach_tics: int = 30  # ... or for at most this long
+    use_cooldown_tics: int = 105  # no USE at a wall this soon after the last one (a wall that is no door)
+    use_prob: float = 0.5  # chance to press USE when stuck
+    use_hold_tics: int = 15  # tics USE is held (Doom presses once per hold): a whole window step
+    use_wait_tics: int = 30  # a USE lasts this long: held for use_hold_tics, then waiting while a door opens
+    use_alone_share: float = 0.5  # share of the USEs with no other button (the rest push forward, waiting too)
     max_attempts: int = 4  # seeds tried per episode until one passes is_good_episode
     min_episode_frac: float = 0.5  # shorter walks (cut by a teleporter or a level exit) are retried
     min_cells_per_1000_tics: float = 8.0  # fewer distinct 64x64-unit cells visited means trapped: retried
@@ -134,6 +162,12 @@ class WorldConfig:
             raise ValueError(f"WorldConfig needs turn_speed > 0 (degrees per tic), got {self.turn_speed}")
         if not self.walk_speed > 0:
             raise ValueError(f"WorldConfig needs walk_speed > 0, got {self.walk_speed}")
+        if not 1 <= self.sticky_min_tics <= self.sticky_max_tics:
+            raise ValueError(f"WorldConfig needs 1 <= sticky_min_tics <= sticky_max_tics, got "
+                             f"{self.sticky_min_tics}, {self.sticky_max_tics}")
+        if not 1 <= self.use_hold_tics <= self.use_wait_tics:
+            raise ValueError(f"WorldConfig needs 1 <= use_hold_tics <= use_wait_tics, got {self.use_hold_tics}, "
+                             f"{self.use_wait_tics}")
 
     @property
     def top_speed(self) -> float:
@@ -147,12 +181,36 @@ class WorldConfig:
         return math.radians(self.turn_speed) * HZ
 
 
+# The settings added in generator version 3 at the values that make its walker the version-2 one, exactly (every
+# behaviour added is off and draws no random number): worlds built before were walked by that walker, and the real
+# world (envs/doom.py) replays their recorded walks to start from their frames.
+V2_WALKER = {"use_wait_tics": 30, "use_hold_tics": 1, "use_alone_share": 0.0, "door_use_prob": 0.0,
+             "stand_weight": 0.0, "backward_turn_share": 0.0, "sticky_min_tics": 6, "sticky_max_tics": 20,
+             "reverse_prob": 0.0, "avoid_backward_prob": 0.0}
+
+
+def sidecar_world_config(sidecar: dict) -> WorldConfig:
+    """The WorldConfig a sample world was walked with, from its sidecar (sample_world.json): its recorded settings,
+    with the version-2 walker's (V2_WALKER) for the settings a world of an older generator version does not name."""
+    config = sidecar["config"]
+    if sidecar.get("generator_version", 0) < 3:
+        config = {**V2_WALKER, **config}
+    return WorldConfig(**config)
+
+
 def _hold(rng: np.random.Generator, lo: int, hi: int) -> int:
     return int(rng.integers(lo, hi + 1))
 
 
+def _chance(rng: np.random.Generator, p: float) -> bool:
+    """True with probability p; a zero p draws no number, so that a behaviour switched off leaves the random stream
+    (and so the walk) as it was: the version-2 walker is this one with V2_WALKER's settings."""
+    return p > 0 and rng.random() < p
+
+
 class ExplorerPolicy:
-    """Sticky-action walker that prefers moving forward and steers away from near walls using the depth buffer.
+    """Sticky-action walker that prefers moving forward and steers away from near walls using the depth buffer;
+    now and then it walks backward, stands, shuttles, and presses USE at walls (module doc).
 
     Call it once per tic with the depth buffer (H, W) uint8 (larger = farther) and the player's (x, y); it returns
     the buttons to hold for that tic as a tuple of 0/1 in BUTTON_NAMES order.
@@ -169,6 +227,10 @@ class ExplorerPolicy:
         self.spin_tics = 0  # tics spent turning away from walls without finding an opening
         self.trapped_tics = int(360 / cfg.turn_speed)  # a full turn without an opening: try USE (a closed door?)
         self.turn_around_tics = (int(100 / cfg.turn_speed), int(180 / cfg.turn_speed))
+        self.back_tics = 0  # tics left backing away from a wall before turning in place
+        self.use_tics = 0  # tics left holding USE
+        self.use_forward = True  # whether the USE pushes forward
+        self.since_use = cfg.use_cooldown_tics  # tics since the last USE
 
     def _depth_features(self, depth_HW: np.ndarray):
         H, W = depth_HW.shape
@@ -180,6 +242,7 @@ class ExplorerPolicy:
 
     def _start(self, action: str, hold: int):
         self.action, self.hold = action, hold
+        self.back_tics = 0
         self.forward_xy.clear()
 
     def _random_side(self, open_side: str) -> str:
@@ -187,18 +250,54 @@ class ExplorerPolicy:
             return open_side
         return "left" if open_side == "right" else "right"
 
+    def _sticky(self) -> int:
+        return _hold(self.rng, self.cfg.sticky_min_tics, self.cfg.sticky_max_tics)
+
+    def _start_backward(self, open_side: str):
+        turn = _chance(self.rng, self.cfg.backward_turn_share)
+        self._start("backward_" + self._random_side(open_side) if turn else "backward", self._sticky())
+
     def _sample_action(self, open_side: str):
         cfg, rng = self.cfg, self.rng
-        w = np.array([cfg.forward_weight, cfg.curve_weight, cfg.turn_weight, cfg.backward_weight])
-        kind = rng.choice(4, p=w / w.sum())
+        # stand last: with its weight 0, the draw picks what the version-2 walker's did
+        w = np.array([cfg.forward_weight, cfg.curve_weight, cfg.turn_weight, cfg.backward_weight, cfg.stand_weight])
+        kind = rng.choice(5, p=w / w.sum())
         if kind == 0:
             self._start("forward", _hold(rng, 20, 80))
         elif kind == 1:
             self._start("forward_" + self._random_side(open_side), _hold(rng, 8, 35))
         elif kind == 2:
             self._start(self._random_side(open_side), _hold(rng, 6, 30))
+        elif kind == 3:
+            self._start_backward(open_side)
         else:
-            self._start("backward", _hold(rng, 6, 20))
+            self._start("stand", self._sticky())
+
+    def _start_use(self) -> tuple:
+        """Press USE for use_hold_tics, alone (standing while a door opens) or pushing forward."""
+        self.use_forward = not _chance(self.rng, self.cfg.use_alone_share)
+        self._start("use", self.cfg.use_wait_tics)
+        self.use_tics, self.since_use = self.cfg.use_hold_tics, 0
+        return self._use_buttons()
+
+    def _use_buttons(self) -> tuple:
+        pressing = self.use_tics > 0
+        self.use_tics -= 1
+        return (int(self.use_forward), 0, 0, 0, int(pressing))
+
+    def _curve_away(self, open_side: str):
+        """Curve away early, keeping the side once chosen so the walker does not zig-zag into the wall."""
+        if self.action == "forward" or self.avoid_side is None:
+            self.avoid_side = open_side
+        if self.action != "forward_" + self.avoid_side:
+            self._start("forward_" + self.avoid_side, _hold(self.rng, 6, 16))
+
+    def _door_ahead(self) -> bool:
+        """Sometimes take the wall ahead for a door: walk up to it to press USE (True when the walker does)."""
+        if self.since_use > self.cfg.use_cooldown_tics and _chance(self.rng, self.cfg.door_use_prob):
+            self._start("approach", self.cfg.approach_tics)
+            return True
+        return False
 
     def _stuck(self, xy) -> bool:
         if self.action not in _FORWARD_ACTIONS:
@@ -213,15 +312,24 @@ class ExplorerPolicy:
         cfg, rng = self.cfg, self.rng
         ahead, open_side = self._depth_features(depth_HW)
         self.hold -= 1
+        self.since_use += 1
         if self.action == "turn_around":
+            self.back_tics = max(self.back_tics - 1, 0)  # backing away first, the turn held (the same angle in all)
             if self.hold <= 0:
                 self._start("forward", _hold(rng, 20, 60))
         elif self.action == "use":
-            # USE was pressed on the first tic; keep pushing forward while a door (if any) opens.
+            # USE is held first; then the walker keeps pushing (or standing) while a door (if any) opens.
             if self.hold <= 0:
                 self._start("forward", _hold(rng, 10, 30))
-            return _ACTIONS["forward"]
+                return _ACTIONS["forward"]
+            return self._use_buttons()
+        elif self.action == "approach":
+            if ahead <= cfg.door_depth or self.hold <= 0:  # close enough for USE to reach it
+                return self._start_use()
         elif self.action == "avoid":
+            if self.back_tics > 0:  # backing away first, the turn held; the view ahead only opens up
+                self.back_tics -= 1
+                return _ACTIONS["backward_" + self.avoid_side]
             # Keep turning until the view is open, not merely until the wall leaves the centre; after half a
             # turn without such a view, settle for less.
             self.spin_tics += 1
@@ -229,29 +337,35 @@ class ExplorerPolicy:
             if ahead >= needed:
                 self._start("forward", _hold(rng, 20, 60))
             elif self.spin_tics > self.trapped_tics:  # walls all around: maybe a closed door
-                self._start("use", cfg.use_wait_tics)
-                return _ACTIONS["use"]
+                return self._start_use()
         elif self._stuck(xy):
             if not self.just_used and rng.random() < cfg.use_prob:
-                self._start("use", cfg.use_wait_tics)
                 self.just_used = True
-                return _ACTIONS["use"]
+                return self._start_use()
             self.just_used = False
             self._start("turn_around", _hold(rng, *self.turn_around_tics))  # 100-180 degrees
             self.avoid_side = open_side
+            if _chance(rng, cfg.avoid_backward_prob):
+                self.back_tics = self._sticky()
         elif ahead < cfg.near_depth:
-            self.avoid_side, self.spin_tics = open_side, 0
-            self._start("avoid", 0)
+            if not self._door_ahead():
+                self.avoid_side, self.spin_tics = open_side, 0
+                self._start("avoid", 0)
+                if _chance(rng, cfg.avoid_backward_prob):
+                    self.back_tics = self._sticky()
         elif ahead < cfg.caution_depth and self.action in _FORWARD_ACTIONS:
-            # Curve away early, keeping the side once chosen so the walker does not zig-zag into the wall.
-            if self.action == "forward" or self.avoid_side is None:
-                self.avoid_side = open_side
-            if self.action != "forward_" + self.avoid_side:
-                self._start("forward_" + self.avoid_side, _hold(rng, 6, 16))
+            if not (self.action == "forward" and self._door_ahead()):
+                self._curve_away(open_side)
         elif self.hold <= 0:
+            reverse = self.action in _FORWARD_ACTIONS and _chance(rng, cfg.reverse_prob)
             self.avoid_side = None
-            self._sample_action(open_side)
+            if reverse:  # shuttling: the forward walk turns straight into a backward one
+                self._start_backward(open_side)
+            else:
+                self._sample_action(open_side)
         if self.action in ("turn_around", "avoid"):
+            if self.back_tics > 0:
+                return _ACTIONS["backward_" + self.avoid_side]
             return _ACTIONS[self.avoid_side]
         return _ACTIONS[self.action]
 
@@ -589,6 +703,34 @@ def generate_split(maps: Sequence[str], episodes_per_map: int, episode_len: int,
     }
 
 
+def button_shares(buttons_N5: np.ndarray) -> dict:
+    """(N, 5) 0/1 buttons in BUTTON_NAMES order -> the share of rows holding each button ("held"), and of the rows
+    with no button, walking backward (with or without a turn), turning in place (a turn and no move), walking
+    forward (with or without a turn or USE) and pressing USE; "rows": N."""
+    b = np.asarray(buttons_N5).reshape(-1, len(BUTTON_NAMES)) > 0.5
+    forward, backward, left, right, use = b.T
+    n = len(b)
+
+    def share(mask) -> float:
+        return round(float(mask.mean()), 4) if n else 0.0
+
+    return {"rows": n, "held": {name: share(b[:, i]) for i, name in enumerate(BUTTON_NAMES)},
+            "no_button": share(~b.any(axis=1)), "backward": share(backward),
+            "turn_in_place": share((left | right) & ~forward & ~backward), "forward": share(forward),
+            "use": share(use)}
+
+
+def button_stats(buttons_N5: np.ndarray, segment_ids: np.ndarray, step: int = STEP_TICS) -> dict:
+    """The button shares of a split (button_shares), "per_tic" over every tic and "per_window_row" over every
+    `step`-th tic of each walk (from its first): the rows a token dataset's window gives a model, so a press shorter
+    than a step is mostly missed there."""
+    segment_ids = np.asarray(segment_ids)
+    index = np.arange(len(segment_ids))
+    first = np.maximum.accumulate(np.where(np.r_[True, segment_ids[1:] != segment_ids[:-1]], index, 0))
+    rows = (index - first) % step == 0
+    return {"per_tic": button_shares(buttons_N5), "per_window_row": button_shares(np.asarray(buttons_N5)[rows])}
+
+
 def _atomic_write(path: Path, write):
     """Call write(file object) on a temp file next to `path`, then rename it into place."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -607,6 +749,11 @@ def save_split(path, data: dict):
     _atomic_write(Path(path), lambda f: np.savez(f, **data))
 
 
+def _shares_line(shares: dict) -> str:
+    return ", ".join(f"{k.replace('_', ' ')} {100 * shares[k]:.1f} %"
+                     for k in ("forward", "backward", "turn_in_place", "no_button", "use"))
+
+
 def build_sample_world(out_dir, seed: int = 0, train_maps: Sequence[str] = TRAIN_MAPS,
                        val_maps: Sequence[str] = VAL_MAPS, train_episodes: int = 10,
                        val_episodes: int = 1, episode_len: int = 2000, workers: int = 2,
@@ -616,7 +763,9 @@ def build_sample_world(out_dir, seed: int = 0, train_maps: Sequence[str] = TRAIN
 
     `train_episode_len` (default: `episode_len`) sets the training walks' length alone, so that a world with more,
     shorter training walks keeps the validation split of one with fewer, longer ones.
-    Skips the work (returns False) when both files exist and the sidecar matches the requested parameters.
+    Skips the work (returns False) when both files exist and the sidecar matches the requested parameters. The
+    sidecar also records each split's button statistics (button_stats) under "button_stats", which the comparison
+    leaves out.
     """
     cfg = cfg or WorldConfig()
     out_dir = Path(out_dir)
@@ -636,19 +785,22 @@ def build_sample_world(out_dir, seed: int = 0, train_maps: Sequence[str] = TRAIN
             old = json.loads(sidecar.read_text())
         except json.JSONDecodeError:
             old = None
-        if old == params:
+        if isinstance(old, dict) and {k: v for k, v in old.items() if k != STATS_KEY} == params:
             print(f"{out_dir}: sample world already generated with these parameters; skipping")
             return False
         print(f"{out_dir}: parameters differ from {sidecar}; regenerating")
     sidecar.unlink(missing_ok=True)  # a partial rebuild must never look complete
+    stats = {}
     for split, path in zip(("train", "val"), outputs):
         t0 = time.time()
         split_len = params[split].get("episode_len", episode_len)
         data = generate_split(params[split]["maps"], params[split]["episodes_per_map"], split_len, seed,
                               split=split, workers=workers, cfg=cfg)
         save_split(path, data)
-        print(f"{path}: {len(data['frames'])} frames, {len(data['maps'])} episodes in {time.time() - t0:.1f}s")
-    _atomic_write(sidecar, lambda f: f.write(json.dumps(params, indent=2).encode()))
+        stats[split] = button_stats(data["actions_buttons"], data["segment_ids"])
+        print(f"{path}: {len(data['frames'])} frames, {len(data['maps'])} episodes in {time.time() - t0:.1f}s; "
+              f"buttons per window row: {_shares_line(stats[split]['per_window_row'])}")
+    _atomic_write(sidecar, lambda f: f.write(json.dumps({**params, STATS_KEY: stats}, indent=2).encode()))
     return True
 
 

@@ -1,4 +1,5 @@
 """Tests of the ViZDoom sample-world generator: layout, action meaning, determinism, split disjointness, CLI."""
+import dataclasses
 import json
 import os
 import sys
@@ -225,7 +226,10 @@ def test_train_episode_len_shortens_training_walks_and_keeps_validation(tmp_path
     long_params = json.loads((tmp_path / "long" / sw.SIDECAR_NAME).read_text())
     short_params = json.loads((tmp_path / "short" / sw.SIDECAR_NAME).read_text())
     assert "episode_len" not in long_params["train"] and short_params["train"]["episode_len"] == 20
-    assert {k: v for k, v in short_params.items() if k != "train"} == {k: v for k, v in long_params.items() if k != "train"}
+    # what was asked for is the same but the training split (the button statistics differ with the walks)
+    assert ({k: v for k, v in short_params.items() if k not in ("train", sw.STATS_KEY)}
+            == {k: v for k, v in long_params.items() if k not in ("train", sw.STATS_KEY)})
+    assert short_params[sw.STATS_KEY]["val"] == long_params[sw.STATS_KEY]["val"]
     with np.load(tmp_path / "long" / "val.npz") as a, np.load(tmp_path / "short" / "val.npz") as b:
         for key in ("frames", "segment_ids", "actions_buttons", "actions_driving_command"):
             assert a[key].tobytes() == b[key].tobytes(), key
@@ -253,7 +257,11 @@ def test_cli_writes_npz_and_second_run_is_a_noop(tmp_path, monkeypatch, capsys):
         assert int(f["hz"]) == 35 and list(f["maps"]) == ["MAP01"]
     with np.load(out / "val.npz") as f:
         assert list(f["maps"]) == ["MAP18"]
-    assert json.loads((out / sw.SIDECAR_NAME).read_text())["seed"] == 1
+    sidecar = json.loads((out / sw.SIDECAR_NAME).read_text())
+    assert sidecar["seed"] == 1
+    with np.load(out / "train.npz") as f:  # the statistics of what was walked, beside the parameters
+        assert sidecar[sw.STATS_KEY]["train"] == sw.button_stats(f["actions_buttons"], f["segment_ids"])
+    assert sidecar[sw.STATS_KEY]["val"]["per_tic"]["rows"] == 30
     mtimes = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
     capsys.readouterr()
 
@@ -307,3 +315,57 @@ def test_build_sample_passes_turn_speed_and_workers(tmp_path, monkeypatch, capsy
     with pytest.raises(SystemExit, match="2"):
         build_sample.main(["--output_dir", str(tmp_path), "--workers", "0"])
     assert "--workers must be >= 1" in capsys.readouterr().err
+
+
+def test_button_stats_count_tics_and_window_rows():
+    """Shares per tic and over every 15th tic of each walk (the rows a window gives a model): a one-tic USE is a
+    tic's share but no window row's."""
+    n = sw.STEP_TICS
+    walk = np.zeros((4 * n, 5), np.float32)
+    walk[:n, 0] = 1  # forward for a step
+    walk[n: 2 * n, [1, 2]] = 1  # backward and left
+    walk[2 * n: 3 * n, 3] = 1  # turn right in place
+    walk[3 * n + 1, 4] = 1  # a one-tic USE, then nothing
+    other = np.zeros((n + 1, 5), np.float32)
+    other[:, 4] = 1  # a second walk pressing USE: rows 0 and 15 of it
+    stats = sw.button_stats(np.concatenate([walk, other]), np.repeat([0, 1], [len(walk), len(other)]))
+    tic, row = stats["per_tic"], stats["per_window_row"]
+    assert tic["rows"] == 5 * n + 1 and row["rows"] == 4 + 2
+    assert tic["forward"] == pytest.approx(n / (5 * n + 1), abs=1e-4) and row["forward"] == pytest.approx(1 / 6, abs=1e-4)
+    assert row["backward"] == row["turn_in_place"] == pytest.approx(1 / 6, abs=1e-4)
+    assert row["held"]["TURN_LEFT"] == row["held"]["TURN_RIGHT"] == pytest.approx(1 / 6, abs=1e-4)
+    assert row["no_button"] == pytest.approx(1 / 6, abs=1e-4)  # the one-tic USE is not seen ...
+    assert tic["use"] == pytest.approx((n + 2) / (5 * n + 1), abs=1e-4) and row["use"] == pytest.approx(2 / 6, abs=1e-4)
+    assert tic["no_button"] == pytest.approx((n - 1) / (5 * n + 1), abs=1e-4)  # ... but counted per tic
+    assert sw.button_shares(np.zeros((0, 5)))["rows"] == 0
+
+
+def test_walker_holds_every_behaviour_for_window_steps():
+    """One walk's window rows show walking backward, no button and USE (the version-2 walker's show none of them),
+    and each of those is held in runs of at least a step."""
+    data = sw.generate_split(("MAP01",), episodes_per_map=1, episode_len=1500, seed=0, cfg=FAST, progress=False)
+    b = data["actions_buttons"]
+    rows = sw.button_stats(b, data["segment_ids"])["per_window_row"]
+    assert rows["backward"] >= 0.05 and rows["no_button"] >= 0.03 and rows["use"] >= 0.02
+    assert rows["forward"] >= 0.2 and rows["turn_in_place"] >= 0.1
+    assert ((b[:, 1] == 1) & (b[:, 2] + b[:, 3] == 1)).any()  # backward with a turn held
+    for column in (b[:, 4], (b.sum(axis=1) == 0).astype(np.float32)):  # USE; no button
+        edges = np.flatnonzero(np.diff(np.r_[0, column, 0]))
+        runs = edges[1::2] - edges[::2]
+        assert np.median(runs) >= sw.STEP_TICS - 1, runs
+    assert sw.is_good_episode({"frames": data["frames"], "poses": data["poses"]}, 1500, FAST)
+
+
+def test_older_worlds_keep_the_version_2_walker():
+    """A sidecar of generator version 2 names none of the walker's new settings: they take V2_WALKER's values, the
+    walker that recorded those worlds (the real world replays their walks), which never stands still, walks backward
+    only now and then and presses USE for single tics."""
+    config = {k: v for k, v in dataclasses.asdict(FAST).items() if k not in sw.V2_WALKER}
+    config["clear_depth"] = 28  # what version 2 recorded
+    v2 = sw.sidecar_world_config({"generator_version": 2, "config": config})
+    assert all(getattr(v2, k) == v for k, v in sw.V2_WALKER.items())
+    assert sw.sidecar_world_config({"generator_version": 3, "config": dataclasses.asdict(FAST)}) == FAST
+    data = sw.generate_split(("MAP01",), episodes_per_map=1, episode_len=600, seed=0, cfg=v2, progress=False)
+    b = data["actions_buttons"]
+    assert not (b.sum(axis=1) == 0).any() and not ((b[:, 1] == 1) & (b[:, 2] + b[:, 3] > 0)).any()
+    assert not ((b[1:, 4] == 1) & (b[:-1, 4] == 1)).any()  # no USE held two tics in a row
