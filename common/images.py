@@ -1,5 +1,6 @@
 """Image metrics: PSNR, shared by the evaluator (decoded uint8 frames) and the latent action model (frames in
-[-1, 1]), and SSIM of uint8 frames (the evaluator's rollout protocol)."""
+[-1, 1]); SSIM and sharpness of uint8 frames; KID between two sets of feature rows (the play protocol, the
+tokenizer's score)."""
 import torch
 import torch.nn.functional as F
 
@@ -60,3 +61,24 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2
     map_Bhw = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2))
     return map_Bhw.reshape(N, C, -1).mean(dim=(1, 2)).float()
+
+
+def sharpness(images_NHW3: torch.Tensor) -> torch.Tensor:
+    """uint8 images (N, H, W, 3) -> (N,) mean absolute Laplacian of the grey image (0-255 scale), inside the border."""
+    grey_N1HW = images_NHW3.float().mean(dim=-1, keepdim=True).permute(0, 3, 1, 2)
+    kernel = torch.tensor([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]]).view(1, 1, 3, 3)
+    return F.conv2d(grey_N1HW, kernel.to(grey_N1HW.device)).abs().mean(dim=(1, 2, 3))
+
+
+def kid(features_a: torch.Tensor, features_b: torch.Tensor) -> float:
+    """Kernel inception distance between two sets of feature rows (n, d) and (m, d), n, m >= 2: the unbiased MMD^2
+    with the kernel k(x, y) = (x.y / d + 1)^3. Its expectation is 0 for two samples of the same distribution, so a
+    small set can come out slightly negative."""
+    a, b = features_a.double(), features_b.double()
+    n, m, d = len(a), len(b), a.shape[1]
+    if n < 2 or m < 2:
+        raise ValueError(f"kid needs at least 2 rows in each set, got {n} and {m}")
+    k_aa, k_bb, k_ab = ((x @ y.T / d + 1) ** 3 for x, y in ((a, a), (b, b), (a, b)))
+    same_a = (k_aa.sum() - k_aa.diagonal().sum()) / (n * (n - 1))
+    same_b = (k_bb.sum() - k_bb.diagonal().sum()) / (m * (m - 1))
+    return float(same_a + same_b - 2 * k_ab.mean())

@@ -26,10 +26,9 @@ from typing import Any, Dict, List, Optional
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
-from common.images import psnr
+from common.images import kid, psnr, sharpness
 from data import RawTokenDataset, TokenDatasetError
 from evaluation.metrics import images_to_unit_range
 from evaluation.protocols import (EvaluationError, apply_decoding, load_real_frames, raw_frames_path,
@@ -64,27 +63,6 @@ class PlayConfig:
 
 
 # ------------------------------------------------------------------ scores
-def sharpness(images_NHW3: torch.Tensor) -> torch.Tensor:
-    """uint8 images (N, H, W, 3) -> (N,) mean absolute Laplacian of the grey image (0-255 scale), inside the border."""
-    grey_N1HW = images_NHW3.float().mean(dim=-1, keepdim=True).permute(0, 3, 1, 2)
-    kernel = torch.tensor([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]]).view(1, 1, 3, 3)
-    return F.conv2d(grey_N1HW, kernel.to(grey_N1HW.device)).abs().mean(dim=(1, 2, 3))
-
-
-def kid(features_a: torch.Tensor, features_b: torch.Tensor) -> float:
-    """Kernel inception distance between two sets of feature rows (n, d) and (m, d), n, m >= 2: the unbiased MMD^2
-    with the kernel k(x, y) = (x.y / d + 1)^3. Its expectation is 0 for two samples of the same distribution, so a
-    small set can come out slightly negative."""
-    a, b = features_a.double(), features_b.double()
-    n, m, d = len(a), len(b), a.shape[1]
-    if n < 2 or m < 2:
-        raise ValueError(f"kid needs at least 2 rows in each set, got {n} and {m}")
-    k_aa, k_bb, k_ab = ((x @ y.T / d + 1) ** 3 for x, y in ((a, a), (b, b), (a, b)))
-    same_a = (k_aa.sum() - k_aa.diagonal().sum()) / (n * (n - 1))
-    same_b = (k_bb.sum() - k_bb.diagonal().sum()) / (m * (m - 1))
-    return float(same_a + same_b - 2 * k_ab.mean())
-
-
 def horizon_bins(steps: int) -> List[tuple]:
     """The bins of HORIZON_BINS that start within `steps`, the last one cut at `steps`."""
     return [(lo, min(hi, steps)) for lo, hi in HORIZON_BINS if lo <= steps]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from evaluation.play_protocol import horizon_bins, kid, play_starts, sharpness
+from common.images import kid, sharpness
+from evaluation.play_protocol import horizon_bins, play_starts
 from tests.cli_runner import REPO, run_as_main
 from tests.test_evaluate import lpips_weights_available
 
