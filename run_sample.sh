@@ -10,7 +10,10 @@
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png
 #   4. evaluate with the challenge metrics, the copy-the-last-frame baselines and the rollout protocol (greedy, and
 #      sampled: whole tokens at temperature 1) -> data/genie_model/*.json
-#   5. print the commands that play the model in a browser (play.py) and rank policies inside it
+#   5. play it for 64 steps (27 s) from real starts, replaying the recorded buttons, scored against the real frames
+#      beside the tokenizer's reconstruction and holding the last real frame (evaluate.py --protocol play)
+#      -> data/genie_model/metrics_play*.json, play_curves.png, play_drive.gif
+#   6. print the commands that play the model in a browser (play.py) and rank policies inside it
 # Futures are decoded as the checkpoint's decoding.json says (the recipe's: whole tokens at temperature 1, the
 # pointer's --copy_bias 2, greedy copies from the single most weighted neighbour); the GIF, the comic and the greedy
 # rollouts add --temperature 0.
@@ -21,6 +24,7 @@
 # GENIE_CONFIG=genie/configs/sample_world.json GENERATE_ARGS=), EVAL_ARGS, LPIPS_EVAL_ARGS and ROLLOUT_EVAL_ARGS
 # (extra evaluate.py flags of the three evaluations), SAMPLED_ROLLOUT_ARGS (extra flags of the sampled rollout
 # evaluation; SKIP_SAMPLED=1 skips it), WEIGHT_DECAY (train.py's; the recipe's 0.4 unless set) change the defaults below;
+# PLAY_ARGS (extra flags of the play protocol; SKIP_PLAY=1 skips it);
 # SKIP_BASELINES=1 skips evaluation.baselines (the data's copy and lookup baselines, the same for every model: slow on a
 # large world, and known after one run).
 # STALL_RATIO (off unless set) turns on the stall rule for the futures (--stall_ratio: a future whose frame changes
@@ -78,8 +82,14 @@ evaluate_tf "$VAL" | tee "$OUT/eval.log"
 # horizon against holding the last prompt frame.
 evaluate_rollout "$VAL" --temperature 0 | tee "$OUT/eval_rollout.log"
 [ -z "$SAMPLED" ] || evaluate_rollout "$VAL" ${SAMPLED_ROLLOUT_ARGS:-} | tee "$OUT/eval_rollout_sampled.log"
-# evaluate_unseen NAME DIR: both protocols on DIR/val -> metrics_NAME.json, metrics_rollout[_sampled]_NAME.json;
-# nothing when DIR has no val split
+# evaluate_play DIR FIGURES: the play protocol on a sample world split (its raw frames beside it), figures to FIGURES
+evaluate_play() {
+  "$PY" evaluate.py --checkpoint_dir "$OUT/final_checkpt" --val_data_dir "$1" --protocol play --figures_dir "$2" \
+    ${PLAY_ARGS:-}
+}
+[ -n "${SKIP_PLAY:-}" ] || evaluate_play "$VAL" "$OUT" | tee "$OUT/eval_play.log"
+# evaluate_unseen NAME DIR: the protocols on DIR/val -> metrics_NAME.json, metrics_rollout[_sampled]_NAME.json,
+# metrics_play_NAME.json (figures in OUT/play_NAME); nothing when DIR has no val split
 SCORED_UNSEEN=""
 evaluate_unseen() {
   local name=$1 dir=$2
@@ -91,6 +101,10 @@ evaluate_unseen() {
   tail -n 1 "$OUT/eval_$name.log" > "$OUT/metrics_$name.json"
   tail -n 1 "$OUT/eval_rollout_$name.log" > "$OUT/metrics_rollout_$name.json"
   [ -z "$SAMPLED" ] || tail -n 1 "$OUT/eval_rollout_sampled_$name.log" > "$OUT/metrics_rollout_sampled_$name.json"
+  if [ -z "${SKIP_PLAY:-}" ]; then
+    evaluate_play "$dir/val" "$OUT/play_$name" | tee "$OUT/eval_play_$name.log"
+    tail -n 1 "$OUT/eval_play_$name.log" > "$OUT/metrics_play_$name.json"
+  fi
 }
 if [ -n "${UNSEEN_DIR:-}" ]; then
   evaluate_unseen unseen "$UNSEEN_DIR"
@@ -102,9 +116,11 @@ tail -n 1 "$OUT/eval_lpips.log" > "$OUT/metrics_lpips.json"
 [ -n "${SKIP_BASELINES:-}" ] || tail -n 1 "$OUT/baselines.log" > "$OUT/baselines.json"
 tail -n 1 "$OUT/eval_rollout.log" > "$OUT/metrics_rollout.json"
 [ -z "$SAMPLED" ] || tail -n 1 "$OUT/eval_rollout_sampled.log" > "$OUT/metrics_rollout_sampled.json"
+[ -n "${SKIP_PLAY:-}" ] || tail -n 1 "$OUT/eval_play.log" > "$OUT/metrics_play.json"
 echo "model: $OUT/final_checkpt   pictures: $OUT/*.gif $OUT/*.png"
 echo "metrics: $OUT/metrics.json (LPIPS: $OUT/metrics_lpips.json; copy baselines: $OUT/baselines.json;"
-echo "         rollouts: $OUT/metrics_rollout.json, sampled: $OUT/metrics_rollout_sampled.json)"
+echo "         rollouts: $OUT/metrics_rollout.json, sampled: $OUT/metrics_rollout_sampled.json;"
+echo "         a minute of play against the real frames: $OUT/metrics_play.json, $OUT/play_curves.png, $OUT/play_drive.gif)"
 [ -z "$SCORED_UNSEEN" ] || echo "unseen maps:$SCORED_UNSEEN"
 echo "play it in a browser: $PY play.py --checkpoint_dir $OUT/final_checkpt --data_dir $VAL"
 echo "rank policies inside it: $PY evaluate.py --protocol policies --checkpoint_dir $OUT/final_checkpt"

@@ -87,9 +87,9 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     apply_cpu_settings(args.num_threads)
     device = resolve_device(args.device)
+    sets = [scored_frames(Path(p), args.stride) for p in args.frames]  # bad input fails before anything loads
     tokenizer = VQModel.from_checkpoint(args.tokenizer_ckpt, map_location=device).eval()
     lpips = LPIPS().to(device)
-    sets = [scored_frames(Path(p), args.stride) for p in args.frames]
     for path, (frames, segments) in zip(args.frames, sets):
         print(json.dumps({"frames_file": path, **score(tokenizer, lpips, frames, segments, device, args.batch_size)}))
     if len(sets) > 1:

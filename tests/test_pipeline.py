@@ -10,6 +10,7 @@ from PIL import Image
 
 from common.train_state import list_checkpoints, load_training_checkpoint
 from data import RawTokenDataset
+from tests.test_evaluate import lpips_weights_available
 from magvit2 import VQConfig, VQModel
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,7 +54,11 @@ def test_main_job_pipeline_tiny(tmp_path):
     env = dict(os.environ, SAMPLE_DIR=str(sample), OUT=str(out), GENIE_CONFIG=str(config),
                EVAL_ARGS="--max_examples 1", LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", NUM_EXAMPLES="1",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
-               UNSEEN_DIR=str(sample))  # stands in for a set of unseen maps: its val split is another map
+               UNSEEN_DIR=str(sample),  # stands in for a set of unseen maps: its val split is another map
+               PLAY_ARGS="--play_steps 4 --starts_per_episode 1")
+    play = lpips_weights_available()  # the play protocol scores LPIPS and its features
+    if not play:
+        env["SKIP_PLAY"] = "1"
     subprocess.run(["bash", str(REPO / "run_sample.sh"), "--max_train_steps", "2", "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0", "--num_warmup_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
     assert (out / "final_checkpt" / "model.safetensors").exists()
@@ -83,6 +88,11 @@ def test_main_job_pipeline_tiny(tmp_path):
     unseen = json.loads((out / "metrics_unseen.json").read_text())
     assert unseen["num_examples"] == 1 and unseen["copy_acc"] == metrics["copy_acc"]  # same val split here
     assert json.loads((out / "metrics_rollout_unseen.json").read_text())["protocol"] == "rollout"
+    if play:
+        for name in ("metrics_play.json", "metrics_play_unseen.json"):
+            result = json.loads((out / name).read_text())
+            assert (result["protocol"], result["steps"], result["num_starts"]) == ("play", 4, 1)
+        assert (out / "play_curves.png").exists() and (out / "play_unseen" / "play_drive.gif").exists()
     state = saved_training_state(out)
     decays = {g["weight_decay"] for g in state["optimizer"]["param_groups"]}
     assert decays == {0.0, 0.4}  # the main command's decay on matrices and embeddings, none on biases and norms
