@@ -29,7 +29,7 @@ import torch
 from tqdm import tqdm
 
 from common.images import kid, psnr, sharpness
-from data import RawTokenDataset, TokenDatasetError
+from data import RawTokenDataset, TokenDatasetError, read_metadata
 from evaluation.metrics import images_to_unit_range
 from evaluation.protocols import (EvaluationError, apply_decoding, load_real_frames, raw_frames_path,
                                   start_process)
@@ -212,8 +212,9 @@ def run_play(cfg: PlayConfig) -> dict:
     from envs.world_model import WorldModelEnv
 
     device = start_process(cfg.device, cfg.num_threads, cfg.seed)
-    env = WorldModelEnv.from_checkpoint(cfg.checkpoint_dir, None, tokenizer_ckpt=cfg.tokenizer_ckpt,
-                                        device=str(device))
+    # the tokenizer that made the tokens decodes them: the dataset's, unless --tokenizer_ckpt says otherwise
+    tokenizer_ckpt = cfg.tokenizer_ckpt or read_metadata(Path(cfg.data_dir)).get("tokenizer_ckpt")
+    env = WorldModelEnv.from_checkpoint(cfg.checkpoint_dir, None, tokenizer_ckpt=tokenizer_ckpt, device=str(device))
     config = env.model.config
     if config.num_latent_actions:
         raise EvaluationError("the play protocol replays the recorded buttons; a latent-action model is driven by "

@@ -96,6 +96,14 @@ def test_play_protocol_scores_every_step_against_the_real_frames(world, tmp_path
     expected = np.mean([10 * np.log10(255.0 ** 2 / m) for m in mse])
     assert result["per_step"]["hold"]["psnr"][0] == pytest.approx(expected, rel=1e-4)
 
+    # the tokenizer column decodes the dataset's tokens with the tokenizer its metadata names (not the shipped one)
+    from magvit2 import VQModel
+    tokenizer = VQModel.from_checkpoint(world["tokenizer"]).eval()
+    decoded = [tokenizer.tokens_to_images(dataset[i]["tokens"][2:3].long())[0].double() for i in chosen]
+    mse = [((d - frames[f + 30].double()) ** 2).mean().item() for d, f in zip(decoded, firsts)]
+    expected = np.mean([10 * np.log10(255.0 ** 2 / m) for m in mse])
+    assert result["per_step"]["tokenizer"]["psnr"][0] == pytest.approx(expected, rel=1e-3)
+
     assert (tmp_path / "figures" / "play_curves.png").stat().st_size > 1000
     from PIL import Image
     with Image.open(tmp_path / "figures" / "play_drive.gif") as gif:
