@@ -218,24 +218,32 @@ class PolicyRankingConfig:
 
 
 def ensure_trained(cfg: PolicyRankingConfig) -> None:
-    """Train the cloned policies and the motion estimator into cfg.policy_dir when they are not there."""
+    """Train the cloned policies (when cfg.policies names one) and the motion estimator into cfg.policy_dir unless
+    they are there, recorded as trained from cfg.policy_train_data (and the cloned ones over this version's macro
+    actions): weights of another world, data or set of macro actions are retrained, with a line saying why."""
+    import logging
     from pathlib import Path
 
     from sample_world.motion_estimator import train_motion_estimator
-    from sample_world.policies import BC_BUDGETS, train_bc_policies
+    from sample_world.policies import BC_BUDGETS, BC_RECORD, bc_weights, stale_reason, stamp_source, train_bc_policies
 
-    policy_dir = Path(cfg.policy_dir)
+    logger = logging.getLogger("evaluate")
+    policy_dir, train_npz = Path(cfg.policy_dir), Path(cfg.policy_train_data)
+    estimator = policy_dir / "motion_estimator.safetensors"
     wanted_bc = any(p.partition("_random")[0] in BC_BUDGETS for p in cfg.policies if ":" not in p)
-    missing_bc = not all((policy_dir / f"{n}.safetensors").is_file() for n in BC_BUDGETS)
-    missing_estimator = not (policy_dir / "motion_estimator.safetensors").is_file()
-    if (wanted_bc and missing_bc) or missing_estimator:
-        if not Path(cfg.policy_train_data).is_file():
-            raise PolicyEvalError(f"--policy_train_data {cfg.policy_train_data} not found: the recorded walks that "
-                                  f"the cloned policies and the motion estimator learn from (./build.sh makes them)")
-    if wanted_bc and missing_bc:
-        train_bc_policies(cfg.policy_train_data, policy_dir, seed=0)
-    if missing_estimator:
-        train_motion_estimator(cfg.policy_train_data, policy_dir / "motion_estimator.safetensors", seed=0)
+    stale_bc = stale_reason(bc_weights(policy_dir), policy_dir / BC_RECORD, train_npz, True) if wanted_bc else None
+    stale_estimator = stale_reason([estimator], estimator.with_suffix(".json"), train_npz, False)
+    if (stale_bc or stale_estimator) and not train_npz.is_file():
+        raise PolicyEvalError(f"--policy_train_data {train_npz} not found: the recorded walks that the cloned "
+                              f"policies and the motion estimator learn from (./build.sh makes them), needed "
+                              f"because {stale_bc or stale_estimator}")
+    if stale_bc:
+        logger.info("training the cloned policies into %s: %s", policy_dir, stale_bc)
+        train_bc_policies(train_npz, policy_dir, seed=0)
+    if stale_estimator:
+        logger.info("training the motion estimator into %s: %s", estimator, stale_estimator)
+        train_motion_estimator(train_npz, estimator, seed=0)
+        stamp_source(estimator.with_suffix(".json"), train_npz)
 
 
 def run_policies(cfg: PolicyRankingConfig) -> dict:

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from sample_world.motion_estimator import MotionNet, dead_reckon, distance_from_start, pose_motion, step_pairs
-from sample_world.policies import (MACROS, PolicyError, RandomButtons, Shuttle, check_action, load_policies, load_policy,
-                            macro_targets)
+from sample_world.policies import (MACRO_NAMES, MACROS, UNMATCHED, PolicyError, RandomButtons, Shuttle, check_action,
+                                   load_policies, load_policy, macro_ids, macro_targets)
 
 
 def test_scripted_policies():
@@ -50,6 +50,103 @@ def test_macro_targets_take_the_action_held_most_of_the_step():
     assert MACROS[target[0]] == ("MOVE_FORWARD",) and MACROS[target[5]] == ("TURN_LEFT",)  # 10 of 15 tics left
     _, split = macro_targets(buttons, np.repeat([0, 1], [20, 15]))  # no step crosses two walks
     assert len(split) == 6 + 1
+
+
+def test_every_button_combination_of_the_walker_has_its_own_macro():
+    from sample_world.render import _ACTIONS
+
+    held = {tuple(v) for v in _ACTIONS.values()} | {(0, 0, 0, 0, 1), (1, 0, 0, 0, 1)}  # + USE alone, USE pushing
+    rows = np.array(sorted(held), dtype=np.float32)
+    assert len(rows) == 11
+    ids = macro_ids(rows)
+    assert UNMATCHED not in ids and len(set(ids)) == len(rows)
+    for row, k in zip(rows, ids):  # each row is labelled with the macro holding exactly its buttons
+        np.testing.assert_array_equal(check_action(list(MACROS[k]), "macro"), row)
+    named = dict(zip(MACRO_NAMES, MACROS))
+    assert macro_ids(np.array([[0, 1, 1, 0, 0], [0, 1, 0, 1, 0], [0, 0, 0, 0, 1], [1, 0, 0, 0, 1], [0] * 5])).tolist() \
+        == [MACRO_NAMES.index(n) for n in ("backward_left", "backward_right", "use", "use_forward", "none")]
+    assert named["use"] == ("USE",) and named["none"] == ()
+    # no macro holds forward and backward, both turns, or a half-held button: those rows are not relabelled
+    assert macro_ids(np.array([[1, 1, 0, 0, 0], [0, 0, 1, 1, 0], [0.5, 0, 0, 0, 0]])).tolist() == [UNMATCHED] * 3
+    with pytest.raises(PolicyError, match=r"must be \(N, 5\)"):
+        macro_ids(np.zeros((3, 4)))
+
+
+def test_macro_targets_skip_steps_held_mostly_outside_the_macros():
+    back_left, odd = np.array([0, 1, 1, 0, 0]), np.array([1, 1, 0, 0, 0])  # odd: forward and backward at once
+    buttons = np.stack([back_left] * 15 + [odd] * 15).astype(np.float32)
+    index, target = macro_targets(buttons, np.zeros(30, dtype=np.int64))
+    # steps from frames 0..7 hold back_left for 8+ of 15 tics; from 8 on the odd rows outnumber it
+    assert list(index) == list(range(8)) and {MACROS[t] for t in target} == {("MOVE_BACKWARD", "TURN_LEFT")}
+
+
+def tiny_walks(path, seed: int):
+    """A (40-tic) npz of recorded walks, random frames, every tic backward + right."""
+    rng = np.random.default_rng(seed)
+    np.savez(path, frames=rng.integers(0, 256, size=(40, 64, 64, 3), dtype=np.uint8),
+             actions_buttons=np.tile(np.array([0, 1, 0, 1, 0], np.float32), (40, 1)),
+             segment_ids=np.zeros(40, np.int64), poses=rng.normal(size=(40, 3)).astype(np.float32))
+    return path
+
+
+def test_cached_policies_of_other_data_or_macros_are_retrained(tmp_path, monkeypatch, caplog, one_thread):
+    from evaluation.policy_ranking import PolicyEvalError, PolicyRankingConfig, ensure_trained
+    from sample_world import motion_estimator, policies
+
+    monkeypatch.setattr(policies, "BC_BUDGETS", {"bc_small": 1, "bc_medium": 2, "bc_large": 3})
+    trained = []
+    train_bc, train_estimator = policies.train_bc_policies, motion_estimator.train_motion_estimator
+    monkeypatch.setattr(policies, "train_bc_policies", lambda *a, **k: (trained.append("bc"), train_bc(*a, **k)))
+    monkeypatch.setattr(motion_estimator, "train_motion_estimator", lambda *a, **k: (
+        trained.append("estimator"), train_estimator(*a, **{**k, "steps": 1, "progress": False})))
+    data, policy_dir = tiny_walks(tmp_path / "train.npz", 0), tmp_path / "policies"
+    cfg = PolicyRankingConfig(checkpoint_dir="", policies=["bc_large"], policy_dir=str(policy_dir),
+                              policy_train_data=str(data))
+    record = policy_dir / "bc_policies.json"
+
+    def retrains(what: list, because: str) -> None:
+        caplog.clear()
+        with caplog.at_level("INFO"):
+            ensure_trained(cfg)
+        assert trained == what and because in caplog.text, caplog.text
+        trained.clear()
+        ensure_trained(cfg)  # now recorded as this data's: reused
+        assert not trained
+        policy = load_policy("bc_large", policy_dir)
+        policy.reset(0)
+        assert tuple(policy.act(np.zeros((64, 64, 3), np.uint8))) in MACROS
+
+    retrains(["bc", "estimator"], "bc_small.safetensors is not there")
+    assert json.loads(record.read_text())["macro_names"] == list(MACRO_NAMES)
+    # cloned over the 8 macro actions of before: refused when loaded directly, retrained by the protocol
+    record.write_text(json.dumps({**json.loads(record.read_text()), "macros": [[]] * 8}))
+    with pytest.raises(PolicyError, match="cloned over 8 other macro actions than this version's 11"):
+        load_policy("bc_large", policy_dir)
+    retrains(["bc"], "cloned over 8 other macro actions")
+    record.write_text(json.dumps({k: v for k, v in json.loads(record.read_text()).items() if k != "source"}))
+    retrains(["bc"], "does not record the training data's fingerprint")
+    tiny_walks(data, 1)  # another world at the same path
+    retrains(["bc", "estimator"], "the training data is now")
+    (policy_dir / "motion_estimator.json").write_text("{}")  # an estimator of no recorded data, and the data gone
+    data.unlink()
+    with pytest.raises(PolicyEvalError, match="train.npz not found.*needed because .*motion_estimator.json does not "
+                                              "record"):
+        ensure_trained(cfg)
+
+
+def test_weights_of_another_output_size_are_a_clear_error(tmp_path):
+    from safetensors.torch import save_file
+
+    from sample_world import policies
+
+    net = policies.BCNet()
+    net.net[-1] = torch.nn.Linear(128, 8)  # the 8 macro actions of before
+    save_file(net.state_dict(), str(tmp_path / "bc_large.safetensors"))
+    with pytest.raises(PolicyError, match="8 macro outputs, this version has 11"):
+        policies.BehaviourCloned(tmp_path / "bc_large.safetensors")
+    (tmp_path / "bc_small.safetensors").write_bytes(b"not safetensors")
+    with pytest.raises(PolicyError, match="does not load as a cloned policy"):
+        policies.BehaviourCloned(tmp_path / "bc_small.safetensors")
 
 
 def test_pose_motion_step_pairs_and_dead_reckoning_by_hand():
@@ -147,6 +244,7 @@ def test_evaluate_policies_protocol_end_to_end(tmp_path, capsys):
     from sample_world import render as sw
     from evaluate import main
     from sample_world.motion_estimator import train_motion_estimator
+    from sample_world.policies import stamp_source
     from tests.play_fixtures import tiny_model, tiny_tokenizer
 
     cfg = sw.WorldConfig(warmup_min_tics=35, warmup_max_tics=60)
@@ -154,6 +252,7 @@ def test_evaluate_policies_protocol_end_to_end(tmp_path, capsys):
                           episode_len=60, workers=1, cfg=cfg)
     train_motion_estimator(tmp_path / "raw" / "train.npz", tmp_path / "policies" / "motion_estimator.safetensors",
                            steps=2, progress=False)
+    stamp_source(tmp_path / "policies" / "motion_estimator.json", tmp_path / "raw" / "train.npz")  # else retrained
     (tmp_path / "mine.py").write_text("class Jump:\n    def reset(self, seed): pass\n"
                                       "    def act(self, frame): return ['JUMP']\n")
     args = ["--protocol", "policies", "--checkpoint_dir", str(tiny_model(tmp_path / "model")),
