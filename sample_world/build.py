@@ -28,10 +28,12 @@ from magvit2.tokenize_frames import describe_inputs, tokenize_episodes
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_TOKENIZER = "magvit2/pretrained/sample_world_64"
 TOKENIZER_CONFIG = "magvit2/configs/sample_world_64.json"
-# The exact recipe of the shipped tokenizer (see magvit2/pretrained/sample_world_64/README.md).
-TOKENIZER_RECIPE = ["--vq_config", TOKENIZER_CONFIG, "--resolution", "64", "--batch_size", "8",
-                    "--learning_rate", "1e-3", "--max_train_steps", "600", "--perceptual_every", "4",
-                    "--augment", "--max_eval_frames", "512", "--eval_every_n_steps", "600", "--seed", "0", "--no_gan"]
+# The recipe of the shipped tokenizer (see magvit2/pretrained/sample_world_64/README.md): L1 + LPIPS on every second
+# step for 1,500 steps of 16 frames; the run went on into its GAN phase (from step 1,500), which made it worse.
+TOKENIZER_RECIPE = ["--vq_config", TOKENIZER_CONFIG, "--resolution", "64", "--batch_size", "16",
+                    "--learning_rate", "1e-3", "--max_train_steps", "1500", "--perceptual_every", "2", "--augment",
+                    "--max_eval_frames", "256", "--eval_every_n_steps", "500", "--use_gan", "--disc_start", "1500",
+                    "--mixed_precision", "bf16", "--channels_last", "--num_threads", "1", "--seed", "0"]
 
 
 def train_tokenizer(raw_dir: Path, output_dir: Path, extra_args=()) -> Path:
