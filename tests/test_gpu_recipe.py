@@ -31,7 +31,8 @@ def test_gpu_recipe_refuses_a_cpu_box_and_runs_tiny_when_allowed(tmp_path):
                TRAIN_MAPS="MAP01", BUILD_ARGS=f"--val_maps MAP18 --episode_len 240 --tokenizer_ckpt {tokenizer}",
                LPIPS_EVAL_ARGS="--skip_lpips --max_examples 1", SKIP_SAMPLED="1",
                ROLLOUT_EVAL_ARGS="--skip_lpips --max_examples 1 --num_prompt_frames 8",
-               UNSEEN_DIRS=f"{tmp_path / 'none'} {tmp_path / 'world'}", STALL_RATIO="0.4", SKIP_BASELINES="1", WEIGHT_DECAY="0.1")
+               UNSEEN_DIRS=f"{tmp_path / 'none'} {tmp_path / 'world'}", STALL_RATIO="0.4", SKIP_BASELINES="1", WEIGHT_DECAY="0.1",
+               SKIP_PLAY="1")  # the play protocol: tests/test_pipeline.py
     env["STEPS"] = "40"  # the warm-up follows it: STEPS/20 unless WARMUP says otherwise
     subprocess.run(["bash", str(REPO / "run_gpu.sh"), "--per_device_train_batch_size", "1",
                     "--eval_every_n_steps", "0"], cwd=REPO, env=env, check=True, timeout=600)
