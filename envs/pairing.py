@@ -4,6 +4,8 @@ from typing import Optional
 
 import numpy as np
 
+from sample_world.render import raw_frames_path
+
 
 def real_world_for(env, data_dir: Optional[str]):
     """(DoomEnv, raw npz) of the sample world that data_dir was built from, or (None, reason) when there is none: a
@@ -11,7 +13,7 @@ def real_world_for(env, data_dir: Optional[str]):
     if data_dir is None or not env.buttons:
         return None, "the model is not driven by buttons" if data_dir else "no --data_dir"
     data_dir = Path(data_dir)
-    raw_npz = data_dir.parent / "raw" / f"{data_dir.name}.npz"
+    raw_npz = raw_frames_path(data_dir)
     if not raw_npz.is_file():
         return None, f"{raw_npz} not found (the data is not a sample world)"
     try:

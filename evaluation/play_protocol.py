@@ -31,13 +31,12 @@ from tqdm import tqdm
 from common.images import kid, psnr, sharpness
 from data import RawTokenDataset, TokenDatasetError, read_metadata
 from evaluation.metrics import images_to_unit_range
-from evaluation.protocols import (EvaluationError, apply_decoding, load_real_frames, raw_frames_path,
-                                  start_process)
+from evaluation.protocols import EvaluationError, apply_decoding, load_real_frames, start_process
 from magvit2.lpips import LPIPS
+from sample_world.render import STEP_TICS, raw_frames_path
 
 logger = logging.getLogger("evaluation.play_protocol")
 
-STEP_TICS = 15  # dataset frames between two steps of play (the windows' stride)
 HORIZON_BINS = ((1, 8), (9, 16), (17, 32), (33, 64), (65, 128), (129, 256))
 WORLDS = ("model", "tokenizer", "hold")  # what is scored against the real frames
 FEATURE_CHUNK = 64

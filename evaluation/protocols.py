@@ -38,6 +38,7 @@ from genie.metrics import factored_cross_entropy
 from genie.model import STMaskGIT
 from magvit2 import VQModel
 from magvit2.lpips import LPIPS
+from sample_world.render import raw_frames_path
 
 logger = logging.getLogger("evaluation.protocols")
 
@@ -159,13 +160,6 @@ def model_windows(model: STMaskGIT, cfg: EvalConfig,
     indices, loader = windows_loader(dataset, cfg)
     logger.info("evaluating %d windows of %s with %s", len(indices), cfg.val_data_dir, cfg.checkpoint_dir)
     return dataset, indices, loader
-
-
-def raw_frames_path(data_dir) -> Path:
-    """Where a sample world keeps the real frames of the token dataset `<root>/<split>`: `<root>/raw/<split>.npz`
-    (it may not exist: the 1X data has tokens only)."""
-    data_dir = Path(data_dir)
-    return data_dir.parent / "raw" / f"{data_dir.name}.npz"
 
 
 def load_real_frames(raw_npz: Path, num_images: int) -> np.ndarray:
@@ -371,21 +365,30 @@ def image_scores(scorer: FrameScorer, images_NhHW3: torch.Tensor, truth_NhHW3: t
 
 
 def score_rollout(scorer: FrameScorer, pred_NhHW: torch.Tensor, last_NHW: torch.Tensor, future_NhHW: torch.Tensor,
-                  with_lpips: bool) -> dict:
+                  with_lpips: bool, real_NhHW3: Optional[torch.Tensor] = None) -> dict:
     """Per-window, per-horizon scores of generated frames and of the hold baseline, in pixels.
 
     pred_NhHW: generated token frames (N, h, H, W), h = T - P horizons; last_NHW: the prompt's last token frame
     (N, H, W); future_NhHW: the true token frames the prediction replaces (N, h, H, W).
     Returns {"rollout_psnr", "hold_psnr", "rollout_ssim", "hold_ssim"[, "rollout_lpips", "hold_lpips"]: (N, h)}.
+    real_NhHW3: the real frames (N, 1 + h, H, W, 3) uint8 of the prompt's last frame and the h predicted ones, when
+    the dataset has them: the same scores against them are added, with the same decoded frames, for the generated
+    frames ("rollout_real_*"), the tokenizer's reconstruction of the true frames ("tokenizer_real_*", the ceiling of
+    any model speaking its tokens) and holding the last real prompt frame ("hold_real_*").
     """
     N, h = pred_NhHW.shape[:2]
     truth_NhHW3 = decode_frames(scorer, future_NhHW.flatten(0, 1)).unflatten(0, (N, h))
     pred_NhHW3 = decode_frames(scorer, pred_NhHW.flatten(0, 1)).unflatten(0, (N, h))
     hold_NHW3 = decode_frames(scorer, last_NHW)  # decoded once per window, repeated over the horizons
     hold_NhHW3 = hold_NHW3.unsqueeze(1).expand(-1, h, -1, -1, -1)
+    scored = [("rollout", pred_NhHW3, truth_NhHW3), ("hold", hold_NhHW3, truth_NhHW3)]
+    if real_NhHW3 is not None:
+        real = real_NhHW3.to(pred_NhHW3.device)
+        scored += [("rollout_real", pred_NhHW3, real[:, 1:]), ("tokenizer_real", truth_NhHW3, real[:, 1:]),
+                   ("hold_real", real[:, :1].expand(-1, h, -1, -1, -1), real[:, 1:])]
     scores = {}
-    for name, images_NhHW3 in (("rollout", pred_NhHW3), ("hold", hold_NhHW3)):
-        for metric, values_Nh in image_scores(scorer, images_NhHW3, truth_NhHW3, with_lpips).items():
+    for name, images_NhHW3, against_NhHW3 in scored:
+        for metric, values_Nh in image_scores(scorer, images_NhHW3, against_NhHW3, with_lpips).items():
             scores[f"{name}_{metric}"] = values_Nh
     return scores
 
@@ -404,34 +407,20 @@ def token_statistics(pred_NhHW: torch.Tensor, last_NHW: torch.Tensor, future_NhH
 
 
 def add_rollout_scores(sums: dict, scorer: FrameScorer, tokens_BTHW: torch.Tensor, x_BTHW: torch.Tensor, P: int,
-                       with_lpips: bool, per_window: Optional[list] = None) -> None:
+                       with_lpips: bool, per_window: Optional[list] = None,
+                       real_BTHW3: Optional[torch.Tensor] = None) -> None:
     """Add the per-horizon scores and token statistics of generated windows (B, T, H, W) against the true ones
     (frames P.. generated, frame P - 1 held) to sums {key: (h,) summed over windows}, in place; with a list
-    `per_window`, also append each window's own {key: [h floats]}."""
-    scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips)
+    `per_window`, also append each window's own {key: [h floats]}. real_BTHW3: the windows' real frames
+    (B, T, H, W, 3), when they are scored against them too (`score_rollout`)."""
+    real = None if real_BTHW3 is None else real_BTHW3[:, P - 1:]
+    scores = score_rollout(scorer, tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:], with_lpips, real)
     scores.update(token_statistics(tokens_BTHW[:, P:], x_BTHW[:, P - 1], x_BTHW[:, P:]))
     for key, values_Bh in scores.items():
         sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
     if per_window is not None:
         lists = {key: values_Bh.double().cpu().tolist() for key, values_Bh in scores.items()}
         per_window.extend({key: lists[key][b] for key in lists} for b in range(tokens_BTHW.shape[0]))
-
-
-def add_real_scores(sums: dict, scorer: FrameScorer, tokens_BTHW: torch.Tensor, x_BTHW: torch.Tensor,
-                    real_BTHW3: torch.Tensor, P: int, with_lpips: bool) -> None:
-    """Add per-horizon scores against the real frames (B, T, H, W, 3) to sums, in place: of the generated frames
-    ("rollout_real_*"), of the tokenizer's reconstruction of the true frames ("tokenizer_real_*", the ceiling of any
-    model speaking its tokens) and of holding the last real prompt frame ("hold_real_*")."""
-    B, T = tokens_BTHW.shape[:2]
-    h = T - P
-    truth = real_BTHW3[:, P:].to(tokens_BTHW.device)
-    worlds = {"rollout": decode_frames(scorer, tokens_BTHW[:, P:].flatten(0, 1)).unflatten(0, (B, h)),
-              "tokenizer": decode_frames(scorer, x_BTHW[:, P:].flatten(0, 1)).unflatten(0, (B, h)),
-              "hold": real_BTHW3[:, P - 1:P].to(truth.device).expand(-1, h, -1, -1, -1)}
-    for name, images in worlds.items():
-        for metric, values_Bh in image_scores(scorer, images, truth, with_lpips).items():
-            key = f"{name}_real_{metric}"
-            sums[key] = sums.get(key, 0) + values_Bh.double().sum(dim=0).cpu()
 
 
 def write_per_window(path, per_window: list, dataset: RawTokenDataset, indices: List[int]) -> None:
@@ -457,12 +446,12 @@ def rollout_result(sums: dict, num_examples: int, num_prompt_frames: int, gen_ti
     protocol ("rollout"), num_prompt_frames; per horizon h = 1..T-P (lists, means over windows) rollout_psnr,
     hold_psnr, rollout_ssim, hold_ssim, rollout_lpips, hold_lpips (null without LPIPS), rollout_unchanged,
     true_unchanged, rollout_repeated, true_repeated (`token_statistics`); where the dataset has real frames,
-    {rollout,tokenizer,hold}_real_{psnr,ssim,lpips} (`add_real_scores`); each with its _mean over horizons;
+    {rollout,tokenizer,hold}_real_{psnr,ssim,lpips} (`score_rollout`); each with its _mean over horizons;
     rollout_far_psnr, hold_far_psnr (the last horizon's PSNR); gen_time (s per generated frame); num_examples."""
     result = {"protocol": "rollout", "num_prompt_frames": num_prompt_frames}
     keys = [f"{name}_{metric}" for metric in ("psnr", "ssim", "lpips") for name in ("rollout", "hold")]
     keys += [f"{name}_{stat}" for stat in ("unchanged", "repeated") for name in ("rollout", "true")]  # token_statistics
-    # against the real frames, only where the dataset has them (a sample world; `add_real_scores`)
+    # against the real frames, only where the dataset has them (a sample world; `score_rollout`)
     keys += [key for key in (f"{name}_real_{metric}" for metric in ("psnr", "ssim", "lpips")
                              for name in ("rollout", "tokenizer", "hold")) if key in sums]
     for key in keys:  # LPIPS is missing from the sums with --skip_lpips
@@ -484,7 +473,7 @@ def rollout_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.de
     the decoding used). Action-conditioned models play every action row of the window (the
     sampling challenge gives the future robot states), unless withhold_actions.
     per_window: when a list, each window's own scores are appended to it (`add_rollout_scores`). real: the windows'
-    real frames (`real_frames_of`), when the futures are also scored against them (`add_real_scores`)."""
+    real frames (`real_frames_of`), when the futures are also scored against them (`score_rollout`)."""
     P = cfg.num_prompt_frames
     with_lpips = not cfg.skip_lpips
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
@@ -504,9 +493,8 @@ def rollout_evaluate(model: STMaskGIT, loader, cfg: EvalConfig, device: torch.de
         _synchronize(device)
         gen_time.update(time.perf_counter() - start, B * (T - P))
 
-        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips, per_window)
-        if real is not None:
-            add_real_scores(sums, scorer, tokens_BTHW, x_BTHW, real.windows(num_examples, B, T), P, with_lpips)
+        add_rollout_scores(sums, scorer, tokens_BTHW, x_BTHW, P, with_lpips, per_window,
+                           None if real is None else real.windows(num_examples, B, T))
         num_examples += B
         progress.set_postfix({"psnr": f"{sums['rollout_psnr'].mean().item() / num_examples:.4g}",
                               "hold": f"{sums['hold_psnr'].mean().item() / num_examples:.4g}"})

@@ -84,6 +84,13 @@ STATS_KEY = "button_stats"  # the sidecar's key of what was generated (the rest:
 STALL_TIMEOUT_S = 600.0  # seconds without a finished task before a worker pool is declared stuck (a task: ~5 s)
 
 
+def raw_frames_path(data_dir) -> Path:
+    """Where a sample world keeps the real frames of its token dataset `<root>/<split>`: `<root>/raw/<split>.npz`
+    (sample_world.build writes both; other data, such as the 1X release, has tokens only)."""
+    data_dir = Path(data_dir)
+    return data_dir.parent / "raw" / f"{data_dir.name}.npz"
+
+
 class ButtonsError(InputError):
     """Button names the sample world does not have."""
 
