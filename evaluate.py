@@ -28,7 +28,7 @@ unmask_mode, copy_bias, greedy_tokens, stall_ratio); gen_time (s per generated f
 
 Play (--protocol play, evaluation/play_protocol.py): what a player sees, over a minute of play. From starts spread
 over a sample world split's recorded walks, the model gets --num_prompt_frames real frames and replays the walk's
-buttons for --play_steps steps (default 64, 27 s), sliding its context over its own frames; each step is scored
+buttons for --play_steps steps (default 64, 27 s), its context running over its own frames; each step is scored
 against the real frame (not its tokens) by PSNR, LPIPS, sharpness and, per horizon bin, KID, beside the tokenizer's
 own reconstruction (the ceiling) and holding the last real frame. Keys: protocol, data_dir, steps, prompt_frames,
 num_starts, decoding, per_step and per_bin ({model, tokenizer, hold} x {psnr, lpips, sharpness, kid_x1000}).

@@ -2,7 +2,7 @@
 
 From starts spread over the recorded walks of a sample-world split, the world model environment (envs/world_model.py,
 what `play.py` serves) gets P real frames as its prompt and then replays the walk's own buttons for K steps (15 tics
-each; 64 steps are 27 s), sliding its context over its own frames as a player's session does. Each step's frame is
+each; 64 steps are 27 s), its context running over its own frames as a player's session does. Each step's frame is
 scored against the real frame the walk recorded at that moment, not against the tokenizer's decoding of it:
 
 - PSNR and LPIPS (AlexNet) to the real frame, for the model, for holding the last real prompt frame (the baseline a

@@ -13,7 +13,7 @@ from magvit2 import VQConfig, VQModel
 # how the main command's model is sampled (recipes/sample_world.json), and so the tiny models too
 MAIN_DECODING = DecodingConfig(temperature=1.0, copy_bias=2.0, greedy_tokens="best_neighbour")
 
-T = 4  # a short window: the context slides after a few steps
+T = 4  # a short window: the context restarts after a few steps
 
 
 def tiny_tokenizer(path: Path) -> Path:

@@ -1,6 +1,7 @@
 """The benchmark scripts still run (tiny shapes): they are how speed claims in the README are reproduced."""
 import importlib.util
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -116,9 +117,18 @@ def test_bench_play_serves_steps_and_compares_the_cached_step(tmp_path, capsys):
 
     data = tiny_dataset(tmp_path / "val", tiny_tokenizer(tmp_path / "tokenizer"))
     load("bench_play").main(["--checkpoint_dir", str(tiny_model(tmp_path / "model")), "--data_dir", str(data),
-                             "--steps", "3", "--warmup", "1", "--model_steps", "6", "--num_threads", "1"])
+                             "--steps", "3", "--warmup", "1", "--model_steps", "6", "--num_threads", "1",
+                             "--browser_seconds", "2"])
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["http_steps_per_second"] > 0 and not result["real_world"]
-    assert set(result["model_step"]) == {"growing", "sliding", "same_tokens"}  # T = 4: slides after 2 steps
-    assert all(result["model_step"][phase]["speedup"] > 0 for phase in ("growing", "sliding"))
+    has_browser = shutil.which("chromium") and shutil.which("chromedriver") and importlib.util.find_spec("selenium")
+    if has_browser:  # the page walked with the keys held (a new key every second)
+        assert result["page"]["steps"] > 0 and result["page"]["steps_per_second"] > 0
+        assert result["page"]["page_readout"] > 0
+    else:
+        assert result["page"] is None
+    model = result["model_step"]  # T = 4: the context restarts every 2 steps
+    assert {"cached", "restart", "per_step_ms", "sliding_ms", "speedup_over_sliding", "same_tokens"} == set(model)
+    assert model["cached"]["steps"] + model["restart"]["steps"] == 6 and model["restart"]["steps"] >= 2
+    assert all(model[phase]["speedup"] > 0 for phase in ("cached", "restart")) and model["speedup_over_sliding"] > 0
     assert result["model_step"]["same_tokens"] == 1.0  # the tiny model has no near-ties

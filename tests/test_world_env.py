@@ -100,15 +100,22 @@ def test_same_seed_same_future_and_actions_matter(env):
 
 
 @pytest.mark.parametrize("temperature", [0.0, 1.0])
-def test_cached_sliding_step_equals_recomputing_the_window(env, temperature):
-    """Every step, through the growing context and T + 3 slides, gives the frame that recomputing the whole window
-    at every MaskGIT step gives from the same context, actions and random state."""
+def test_cached_step_equals_recomputing_the_window(env, temperature):
+    """Every step, through the growing context and several restarts, gives the frame that recomputing the whole window
+    at every MaskGIT step gives from the same context, actions and random state; once the window is full the context
+    restarts from its last restart_frames frames (the config's num_prompt_frames), which are the frames before."""
     env.model.set_decoding(env.model.decoding.override(temperature=temperature))
     env.reset(seed=3, options={"window": 2, "prompt_frames": 1})
+    P = env.restart_frames
+    assert P == env.model.config.num_prompt_frames and 1 < P < T - 1
     rng = np.random.default_rng(0)
+    sizes = []
     for _ in range(2 * T + 3):
         action = (rng.random(5) < 0.4).astype(np.int8)
-        tokens, actions, latent = env.step_inputs(action)  # the context keeps the last T-1 frames
+        known = env._tokens.clone()
+        tokens, actions, latent = env.step_inputs(action)
+        sizes.append(len(tokens))
+        np.testing.assert_array_equal(tokens.numpy(), known[-len(tokens):].numpy())  # the latest frames
         np.testing.assert_array_equal(actions[-1].numpy(), action)
         generator = torch.Generator().set_state(env._generator.get_state())
         expected = next_frame_recomputed(env.model, tokens, actions, latent, env.model.decoding.maskgit_steps,
@@ -116,6 +123,8 @@ def test_cached_sliding_step_equals_recomputing_the_window(env, temperature):
         _, _, _, _, info = env.step(action)
         np.testing.assert_array_equal(info["tokens"], expected.numpy())
         assert info["context_frames"] == len(tokens) + 1 <= T
+    grow = list(range(P, T))  # P, ..., T-1 context frames, then a restart
+    assert sizes == (list(range(1, T)) + grow * T)[:len(sizes)]
 
 
 def test_cache_is_kept_while_the_context_grows(env):
@@ -129,7 +138,7 @@ def test_cache_is_kept_while_the_context_grows(env):
     assert cache.length == 3
     _, full = next_frame(env.model, torch.cat([tokens, tokens[-1:]]), torch.zeros(T - 1, 5),
                          torch.zeros(T, dtype=torch.long), cache, 2, 0.0)
-    assert full is None  # the window is full: the next step slides and recomputes
+    assert full is None  # the window is full: the next step restarts the context and recomputes it
 
 
 def test_bad_input_is_named(env, world, tmp_path):
