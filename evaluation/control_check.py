@@ -11,7 +11,8 @@ from the frames alone:
   positive: the content grows, as when walking forward).
 A start's value per control is the mean over its K steps. A model that obeys (`CHECKS`): turns the image one way
 for TURN_LEFT and the other way for TURN_RIGHT; moves it less sideways walking forward than turning; moves forward
-for MOVE_FORWARD and backward for MOVE_BACKWARD; and keeps it still for NONE and for USE alone (a camera that
+for MOVE_FORWARD and backward for MOVE_BACKWARD (at least BACK_RATIO as far as forward goes: a view that barely
+moves has not walked back); and keeps it still for NONE and for USE alone (a camera that
 stands: less than STILL_RATIO of forward's motion and of the turns' shift; a door may open in front). When the
 dataset is a sample world's split, the same starts and controls are played in the real world too (envs/doom.py) as
 the reference.
@@ -23,6 +24,7 @@ from tqdm import tqdm
 
 CONTROL_ACTIONS = ("TURN_LEFT", "TURN_RIGHT", "MOVE_FORWARD", "MOVE_BACKWARD", "USE", "NONE")
 NO_BUTTON = "NONE"  # the control that holds no button
+BACK_RATIO = 0.1  # backward must move back at least this share of forward's motion (the real world: 0.29-1.1)
 STILL_RATIO = 0.25  # "still": under this share of forward's motion and of the turns' shift (a coasting start moves)
 ZOOM_LOG_RANGE = 0.4  # the zoom search spans scales exp(-0.4) to exp(0.4) a step (content shrinking or growing ~50 %)
 ZOOM_STEPS = 81  # scales tried in that range (0.01 apart in log scale), refined by a parabola
@@ -32,7 +34,8 @@ CHECKS = {
     "turns_opposite": "TURN_LEFT shifts the image right and TURN_RIGHT left (mean shift)",
     "forward_less_sideways": "MOVE_FORWARD shifts the image less sideways than either turn (mean |shift|)",
     "forward_moves_forward": "MOVE_FORWARD moves the view forward (mean forward motion > 0)",
-    "backward_moves_back": "MOVE_BACKWARD moves the view backward (mean forward motion < 0)",
+    "backward_moves_back": f"MOVE_BACKWARD moves the view backward (mean forward motion below -{BACK_RATIO:.0%} of "
+                           "MOVE_FORWARD's)",
     "none_still": f"NONE moves the view under {STILL_RATIO:.0%} of MOVE_FORWARD's motion and of the turns' shift",
     "use_still": f"USE alone moves the view under {STILL_RATIO:.0%} of MOVE_FORWARD's motion and of the turns' shift",
 }
@@ -164,7 +167,7 @@ def summarize(shifts: Dict[str, List[float]], forwards: Dict[str, List[float]]) 
         "turns_opposite": bool(np.mean(left) > 0 > np.mean(right)),
         "forward_less_sideways": bool(np.mean(np.abs(forward)) < turn_mean),
         "forward_moves_forward": bool(np.mean(f["MOVE_FORWARD"]) > 0),
-        "backward_moves_back": bool(np.mean(f["MOVE_BACKWARD"]) < 0),
+        "backward_moves_back": bool(np.mean(f["MOVE_BACKWARD"]) < -BACK_RATIO * abs(np.mean(f["MOVE_FORWARD"]))),
         "none_still": still_mean(NO_BUTTON),
         "use_still": still_mean("USE"),
     }

@@ -121,6 +121,11 @@ def test_checks_pass_an_obeying_model_and_fail_each_disobedience():
         (shifts if what == "shift" else forwards)[control] = [value] * 4
         s = summarize(shifts, forwards)
         assert not s["passed"] and [k for k, ok in s["checks"].items() if not ok] == [check], check
+    shifts, forwards = _obeying()
+    forwards["MOVE_BACKWARD"] = [-1.5] * 4  # back, but under a tenth of forward's 20: the view barely moves
+    assert [k for k, ok in summarize(shifts, forwards)["checks"].items() if not ok] == ["backward_moves_back"]
+    forwards["MOVE_BACKWARD"] = [-2.5] * 4
+    assert summarize(shifts, forwards)["passed"]
 
 
 def test_control_runs_on_a_model_beside_the_real_world(tmp_path, capsys):
