@@ -19,7 +19,7 @@ frames P..T-1 after P frames. The first frame of the context gets "no action", a
 window does. Work is reused where the arithmetic allows it: the context's temporal keys and values are computed once
 per step and shared by every MaskGIT step of the new frame, and while the context grows they are kept from step to
 step; only after a restart, when every frame moves to another position embedding, is the context recomputed. That
-makes a step about 1.7x faster than sliding a context of T-1 frames by one frame a step (which recomputes it every
+makes a step about 1.9x faster than sliding a context of T-1 frames by one frame a step (which recomputes it every
 step), with the same scores against the real frames over a minute of play (docs/experiments.md, "A context that
 restarts"). genie/reference.py `next_frame_recomputed` recomputes the whole window at every MaskGIT step instead, the
 published way; benchmarks/bench_play.py measures both.
