@@ -126,7 +126,10 @@ def page_steps_per_second(session, args) -> Optional[dict]:
     from selenium.webdriver.support.ui import WebDriverWait
 
     keys = (Keys.ARROW_UP, Keys.ARROW_LEFT, Keys.ARROW_DOWN, Keys.ARROW_RIGHT)
-    steps = lambda: int(browser.find_element(By.ID, "step").text)  # noqa: E731
+
+    def steps() -> int:  # the page's step counter
+        return int(browser.find_element(By.ID, "step").text)
+
     try:
         with serving(session) as base:
             browser.get(base + "/")
@@ -136,7 +139,7 @@ def page_steps_per_second(session, args) -> Optional[dict]:
             WebDriverWait(browser, 60).until(lambda b: steps() >= args.warmup)
             s0, t0, held, i = steps(), time.perf_counter(), keys[0], 0
             while time.perf_counter() - t0 < args.browser_seconds:
-                time.sleep(min(1.0, args.browser_seconds - (time.perf_counter() - t0)))
+                time.sleep(max(0.0, min(1.0, args.browser_seconds - (time.perf_counter() - t0))))
                 i += 1
                 ActionChains(browser).key_up(held).key_down(keys[i % len(keys)]).perform()
                 held = keys[i % len(keys)]
