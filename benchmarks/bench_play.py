@@ -23,7 +23,6 @@ The last line is JSON.
 import argparse
 import contextlib
 import json
-import shutil
 import socket
 import sys
 import threading
@@ -95,30 +94,14 @@ def serving(session):
         thread.join(timeout=10)
 
 
-def headless_chromium():
-    """Debian's chromium through selenium, headless, or None (with the reason printed) where either is missing."""
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    driver = shutil.which("chromedriver")
-    try:
-        from selenium import webdriver
-    except ImportError:
-        webdriver = None
-    if not chromium or not driver or webdriver is None:
-        print("page in a browser: skipped (needs chromium, chromedriver and selenium: apt install chromium "
-              "chromium-driver; pip install -e .[test])")
-        return None
-    options = webdriver.ChromeOptions()
-    options.binary_location = chromium
-    for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu"):
-        options.add_argument(flag)
-    return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=driver))
-
-
 def page_steps_per_second(session, args) -> Optional[dict]:
     """Walk in the page in headless chromium: {"steps_per_second": counted, "page_readout": the page's own figure},
     or None where there is no browser."""
-    browser = headless_chromium()
+    from play_server.browser import headless_chromium
+
+    browser, reason = headless_chromium()
     if browser is None:
+        print(f"page in a browser: skipped ({reason})")
         return None
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
@@ -186,9 +169,8 @@ def model_step_times(env, args) -> dict:
             action = 0 if env.latent or not env.model.config.action_dim else np.zeros(env.model.config.action_dim)
         known = len(env._tokens)
         tokens, actions, latent = env.step_inputs(action)
-        if cache is None or cache.length != len(tokens):  # the context restarted: nothing cached holds it
-            cache = None
-        phase = "restart" if cache is None else "cached"
+        # next_frame recomputes a context the cache does not hold (after a restart)
+        phase = "cached" if cache is not None and cache.length == len(tokens) else "restart"
         state = env._generator.get_state()
         t0 = time.perf_counter()
         frame, cache = next_frame(env.model, tokens, actions, latent, cache, decoding.maskgit_steps,

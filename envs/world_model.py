@@ -70,8 +70,6 @@ class WorldModelEnv(gym.Env):
         self.prompt_frames = int(prompt_frames or config.num_prompt_frames or 1)
         if not 1 <= self.prompt_frames <= self.T - 1:
             raise WorldEnvError(f"prompt_frames must be in [1, {self.T - 1}], got {self.prompt_frames}")
-        # when the window is full the context restarts from its last restart_frames frames (module doc)
-        self.restart_frames = config.num_prompt_frames
         self.device = next(model.parameters()).device
         self.starts, self.use_latent_rows = starts, False
         if starts is not None:
@@ -177,6 +175,11 @@ class WorldModelEnv(gym.Env):
         if self.use_latent_rows:  # latent row t belongs to the transition t-1 -> t, inside the given frames
             latent[1:] = item["actions"][LATENT_ACTION_NAME][1:prompt_frames, 0].numpy().round()
         return tokens, actions, latent
+
+    @property
+    def restart_frames(self) -> int:
+        """Frames the context restarts from when the window is full: the config's num_prompt_frames (module doc)."""
+        return self.model.config.num_prompt_frames
 
     def window_start_frame(self, window: int, prompt_frames: Optional[int] = None) -> int:
         """Dataset frame index of the last given frame of a start from window `window` (where the recorded walk

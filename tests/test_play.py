@@ -1,7 +1,6 @@
 """play.py (play_server/app.py): the HTTP API the page uses (frames as PNG, the real world beside the model, one-line 400s on bad input)
 and the page itself in a real headless browser (Debian's chromium through selenium)."""
 import io
-import shutil
 import socket
 import threading
 import time
@@ -17,6 +16,7 @@ from sample_world import render as sw  # noqa: E402
 from envs.world_model import WorldModelEnv  # noqa: E402
 from envs.pairing import real_world_for  # noqa: E402
 from play_server.app import PlaySession, build_app  # noqa: E402
+from play_server.browser import headless_chromium  # noqa: E402
 from tests.play_fixtures import tiny_play_world  # noqa: E402
 
 
@@ -105,17 +105,10 @@ def free_port() -> int:
 
 
 def browser_or_skip():
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    driver = shutil.which("chromedriver")
-    if not chromium or not driver:
-        pytest.skip("no headless browser: install Debian's chromium and chromium-driver (.ci/run does) to run the "
-                    "page in a real browser")
-    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e .[test])")
-    options = webdriver.ChromeOptions()
-    options.binary_location = chromium
-    for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu"):
-        options.add_argument(flag)
-    return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=driver))
+    browser, reason = headless_chromium()
+    if browser is None:
+        pytest.skip(reason)
+    return browser
 
 
 def settled_steps(browser, By, timeout: float = 20.0) -> int:
