@@ -29,7 +29,8 @@ from common.errors import InputError
 from sample_world.render import BUTTON_NAMES, HZ, STEP_TICS, driving_command
 from sample_world.motion_estimator import distance_from_start
 from sample_world.policies import check_action
-from evaluation.ranking import kendall, pairwise_accuracy, regret_at_1, spearman
+from evaluation.ranking import (bootstrap_interval, kendall, mean_maximum_rank_violation, pairwise_accuracy, pearson,
+                                regret_at_1, spearman, spearman_p_value)
 
 MAX_START_TRIES = 20
 
@@ -164,13 +165,26 @@ def summarize(returns: Dict[str, Dict[str, list]], steps: int, num_starts: int, 
     def scores(kind: str) -> list:
         return [r[f"{kind}_return"] for r in rows]
 
+    def per_start(kind: str) -> np.ndarray:  # (starts, policies)
+        return np.stack([np.asarray(returns[name][kind], dtype=np.float64) for name in names], axis=1)
+
     best = max(truth)
     regret = regret_at_1(truth, scores("model"))
+    mmrv = mean_maximum_rank_violation(truth, scores("model"))
+    real_SN, model_SN, blind_SN = per_start("real"), per_start("model"), per_start("blind")
     return {
-        "protocol": "policies", "steps": steps, "num_starts": num_starts, "policies": rows,
+        "protocol": "policies", "steps": steps, "num_starts": num_starts, "num_policies": len(names),
+        "policies": rows,
         "spearman": spearman(truth, scores("model")), "kendall": kendall(truth, scores("model")),
         "pairwise_accuracy": pairwise_accuracy(truth, scores("model")), "regret_at_1": regret,
         "regret_at_1_share": regret / best if best > 0 else 0.0,
+        "pearson": pearson(truth, scores("model")),
+        "mmrv": mmrv, "mmrv_share": mmrv / best if best > 0 else 0.0,
+        # how sure: starts resampled with replacement (95 %), and rho against orderings unrelated to the truth
+        "spearman_ci": bootstrap_interval(spearman, real_SN, model_SN),
+        "spearman_minus_blind_ci": bootstrap_interval(lambda t, m, b: spearman(t, m) - spearman(t, b),
+                                                      real_SN, model_SN, blind_SN),
+        "spearman_p": spearman_p_value(truth, scores("model")),
         "blind_spearman": spearman(truth, scores("blind")),
         "real_frames_spearman": spearman(truth, scores("real_frames")),
         "model_pick": names[int(np.argmax(scores("model")))], "real_best": names[int(np.argmax(truth))],
@@ -188,6 +202,13 @@ def ranking_lines(result: dict) -> List[str]:
                  f"{result['real_frames_spearman']:.3f}), kendall {result['kendall']:.3f}, pairwise accuracy "
                  f"{result['pairwise_accuracy']:.3f}, regret@1 {result['regret_at_1']:.1f} "
                  f"({100 * result['regret_at_1_share']:.1f} % of the best)")
+    if "spearman_ci" in result:  # results written before these keys existed lack them
+        low, high = result["spearman_ci"]
+        d_low, d_high = result["spearman_minus_blind_ci"]
+        lines.append(f"pearson {result['pearson']:.3f}, MMRV {result['mmrv']:.1f} ({100 * result['mmrv_share']:.1f} % "
+                     f"of the best); spearman 95 % interval over starts [{low:.3f}, {high:.3f}], minus blind "
+                     f"[{d_low:+.3f}, {d_high:+.3f}], permutation p {result['spearman_p']:.2g}; "
+                     f"{result['num_policies']} policies x {result['num_starts']} starts")
     return lines
 
 

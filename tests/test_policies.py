@@ -237,6 +237,11 @@ def test_a_model_that_ignores_actions_ranks_no_better_than_chance(worlds):
     model_returns = {r["model_return"] for r in result["policies"]}
     assert len(model_returns) == 1  # every policy gets the same imagined walk
     assert result["spearman"] == 0.0 and result["pairwise_accuracy"] == 0.5
+    # and its uncertainty says so: no resample of the starts ranks, every ordering ties it, every real gap violated
+    assert result["spearman_ci"] == (0.0, 0.0) and result["spearman_p"] == 1.0 and result["pearson"] == 0.0
+    truth = [r["real_return"] for r in result["policies"]]
+    assert result["mmrv"] == pytest.approx(np.mean(truth) - min(truth))  # each policy's gap to the worst
+    assert result["num_policies"] == 4 and result["num_starts"] == 2
 
 
 def test_evaluate_policies_protocol_end_to_end(tmp_path, capsys):
@@ -262,8 +267,13 @@ def test_evaluate_policies_protocol_end_to_end(tmp_path, capsys):
     assert run_main("evaluate.py", main, [*args, "--policies", "spin", "forward", "shuttle"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert [p["name"] for p in result["policies"]] == ["spin", "forward", "shuttle"]
-    for key in ("spearman", "kendall", "pairwise_accuracy", "regret_at_1", "blind_spearman", "real_frames_spearman"):
+    for key in ("spearman", "kendall", "pairwise_accuracy", "regret_at_1", "blind_spearman", "real_frames_spearman",
+                "pearson", "mmrv", "mmrv_share", "spearman_p"):
         assert key in result
+    low, high = result["spearman_ci"]
+    assert -1 <= low <= high <= 1 and result["num_policies"] == 3 and result["num_starts"] == 2
+    from evaluation.policy_ranking import ranking_lines
+    assert "permutation p" in ranking_lines(result)[-1]  # the readable lines carry the uncertainty
     assert all(f"{k}_return_std" in p for p in result["policies"] for k in ("real", "model"))
     assert run_main("evaluate.py", main, [*args, "--policies", f"{tmp_path / 'mine.py'}:Jump"]) == 1
     assert "unknown button(s) ['JUMP']" in capsys.readouterr().err

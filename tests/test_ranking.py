@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from evaluation.ranking import average_ranks, kendall, pairwise_accuracy, regret_at_1, spearman
+from evaluation.ranking import (average_ranks, bootstrap_interval, kendall, mean_maximum_rank_violation,
+                                pairwise_accuracy, pearson, regret_at_1, spearman, spearman_p_value)
 
 
 def test_perfect_reversed_and_hand_computed_rankings():
@@ -40,3 +41,43 @@ def test_bad_input_is_named():
         spearman([1, 2, 3], [1, 2])
     with pytest.raises(ValueError, match="finite"):
         kendall([1, np.nan], [1, 2])
+
+
+def test_pearson_and_mean_maximum_rank_violation_by_hand():
+    truth = [1.0, 2.0, 3.0, 4.0]
+    assert pearson(truth, [2, 4, 6, 8]) == pytest.approx(1.0) and pearson(truth, [5, 5, 5, 5]) == 0.0
+    assert pearson(truth, [1, 2, 3, 10]) == pytest.approx(np.corrcoef(truth, [1, 2, 3, 10])[0, 1])
+    assert mean_maximum_rank_violation(truth, [10, 20, 30, 40]) == 0.0
+    # the last two swapped: each of them has a violation of |3 - 4| = 1, the others none
+    assert mean_maximum_rank_violation(truth, [1, 2, 4, 3]) == pytest.approx(0.5)
+    # fully reversed: policy i's largest violated gap is its distance to the furthest policy (3, 2, 2, 3)
+    assert mean_maximum_rank_violation(truth, [4, 3, 2, 1]) == pytest.approx(2.5)
+    # a tie in the prediction only is a violation (SIMPLER's strict comparisons), seen from the higher policy
+    assert mean_maximum_rank_violation(truth, [1, 1, 3, 4]) == pytest.approx(0.25)
+
+
+def test_spearman_p_value_counts_orderings():
+    assert spearman_p_value([1, 2, 3], [1, 2, 3]) == pytest.approx(1 / 6)  # only the observed ordering
+    assert spearman_p_value([1, 2, 3], [3, 2, 1]) == 1.0
+    # one adjacent swap of eight: the identity and the 7 single adjacent swaps reach rho >= its rho
+    assert spearman_p_value(range(8), [0, 1, 2, 3, 4, 5, 7, 6]) == pytest.approx(8 / 40320)
+    # twelve policies: random orderings, the observed one counted once more
+    p = spearman_p_value(range(12), range(12), num_permutations=1000)
+    assert p == pytest.approx(1 / 1001)
+    rng = np.random.default_rng(1)
+    assert 0.2 < np.mean([spearman_p_value(range(6), rng.permutation(6)) for _ in range(50)]) < 0.8
+
+
+def test_bootstrap_interval_over_starts():
+    rng = np.random.default_rng(0)
+    truth_SN = np.tile(np.arange(6.0), (10, 1))
+    # the same returns at every start: every resample gives the same rho
+    assert bootstrap_interval(spearman, truth_SN, truth_SN * 2) == pytest.approx((1.0, 1.0))
+    noisy_SN = truth_SN + rng.normal(0, 3, truth_SN.shape)
+    low, high = bootstrap_interval(spearman, truth_SN, noisy_SN)
+    assert -1 <= low < spearman(truth_SN.mean(0), noisy_SN.mean(0)) < high <= 1
+    assert (low, high) == bootstrap_interval(spearman, truth_SN, noisy_SN)  # seeded
+    narrow = bootstrap_interval(spearman, truth_SN, truth_SN + rng.normal(0, 0.5, truth_SN.shape))
+    assert narrow[1] - narrow[0] < high - low
+    with pytest.raises(ValueError, match="one shape"):
+        bootstrap_interval(spearman, truth_SN, truth_SN[:, :3])
