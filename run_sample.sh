@@ -3,8 +3,10 @@
 #   1. train a small action-conditioned GENIE on data/sample/train -> data/genie_model/final_checkpt, as the recipe
 #      file RECIPE (default recipes/sample_world.json) says: the model (the previous-frame pointer at radius 4,
 #      conditioned on the buttons the walker held, averaged over each window step: what a player commands), the
-#      training (1600 steps of 2 windows; Muon for the transformer's matrices, AdamW for the rest: common/muon.py;
-#      learning rate 1e-2 decaying linearly to zero; weight decay 0.4) and the decoding saved with the checkpoint
+#      training (1600 steps of 2 windows, half of them played backward in time with the buttons mirrored, so that
+#      walking back learns from walking forward; Muon for the transformer's matrices, AdamW for the rest:
+#      common/muon.py; learning rate 1e-2 decaying linearly to zero; weight decay 0.4) and the decoding saved with
+#      the checkpoint
 #   2. generate from held-out prompts of data/sample/val, playing their recorded actions
 #      -> data/genie_model/generated (tokens)
 #   3. decode them into a GIF and a comic strip          -> data/genie_model/*.gif, *.png

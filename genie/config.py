@@ -177,14 +177,27 @@ class TrainingRecipe:
     # this share of the examples has part of its masked tokens filled with the model's own guesses, as MaskGIT's
     # later steps see them at inference, so the model learns how far to trust them
     self_reveal_ratio: float = 0.0
+    # this share of the windows is played backward in time, each pair of real action columns in time_reverse_swaps
+    # swapped: a first-person walk played backward is the opposite walk (forward <-> backward, left <-> right turns),
+    # so a command the walks hold rarely also learns from its mirror. A window in which any other column is nonzero
+    # (e.g. USE: a door opened and played backward closes) is never reversed (training/masking.py)
+    time_reverse_ratio: float = 0.0
+    time_reverse_swaps: Optional[List[List[int]]] = None
 
     def __post_init__(self):
         if self.masking not in MASKING_SCHEMES:
             raise ConfigError(f"TrainingRecipe: masking must be one of {MASKING_SCHEMES}, got {self.masking!r}")
-        for name in ("max_corrupt_rate", "non_mlm_ratio", "self_reveal_ratio"):
+        for name in ("max_corrupt_rate", "non_mlm_ratio", "self_reveal_ratio", "time_reverse_ratio"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise ConfigError(f"TrainingRecipe: {name} must be in [0, 1], got {value}")
+        swaps = self.time_reverse_swaps or []
+        flat = [i for pair in swaps if isinstance(pair, (list, tuple)) for i in pair]
+        if (any(not isinstance(pair, (list, tuple)) or len(pair) != 2 for pair in swaps)
+                or any(not isinstance(i, int) or isinstance(i, bool) or i < 0 for i in flat)
+                or len(set(flat)) != len(flat)):
+            raise ConfigError(f"TrainingRecipe: time_reverse_swaps must be pairs of distinct action column indices "
+                              f"(each index at most once), e.g. [[0, 1], [2, 3]], got {self.time_reverse_swaps}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

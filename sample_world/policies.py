@@ -5,13 +5,15 @@ frame -> the list of buttons to hold for the next window step (names of sample_w
 nothing else: no depth, pose or map. `load_policy(spec)` gives one from a built-in name or from
 `path/to/file.py:ClassName` (constructed without arguments).
 
-The built-in suite (`BUILTIN_POLICIES`) is graded: scripted ones that get nowhere or get stuck (turning in place,
-shuttling forward and back, random buttons, always forward) and policies behaviour-cloned from the walker's recorded
-frames and buttons (`BCNet`, a small CNN over the macro actions the explorer holds) at three training budgets, the
-best of them mixed with random actions at two rates. The cloned weights are trained on first use
-(`train_bc_policies`) into a policy folder, about a minute on a CPU, with a record of what they were trained from
-(bc_policies.json: the macro actions and the training data's fingerprint); `stale_reason` says when weights in a
-policy folder cannot be reused for some training data, and the policies protocol then retrains them.
+The built-in suite (`BUILTIN_POLICIES`) spans what policies do: scripted ones that get nowhere or get stuck (turning
+in place, shuttling forward and back, random buttons, always forward, always backward, standing, dithering between
+forward and backward), two that steer by the pixels (toward the darker, deeper side; along a wall on the right) and
+policies behaviour-cloned from the walker's recorded frames and buttons (`BCNet`, a small CNN over the macro actions
+the explorer holds) at three training budgets, the best of them mixed with random actions at two rates. The cloned
+weights are trained on first use (`train_bc_policies`) into a policy folder, about a minute on a CPU, with a record
+of what they were trained from (bc_policies.json: the macro actions and the training data's fingerprint);
+`stale_reason` says when weights in a policy folder cannot be reused for some training data, and the policies
+protocol then retrains them.
 """
 import hashlib
 import importlib.util
@@ -43,8 +45,8 @@ MACROS = tuple(MACRO_BUTTONS.values())  # a cloned policy's output k holds MACRO
 UNMATCHED = -1  # macro_ids' label of a tic whose buttons are no macro's
 BC_RECORD = "bc_policies.json"
 BC_BUDGETS = {"bc_small": 15, "bc_medium": 150, "bc_large": 1500}  # training steps of batch 64
-BUILTIN_POLICIES = ("spin", "shuttle", "random", "forward", "bc_small", "bc_medium", "bc_large", "bc_large_random50",
-                    "bc_large_random25")
+BUILTIN_POLICIES = ("spin", "shuttle", "random", "forward", "backward", "stand", "dither", "dark_seeker", "wall_hugger",
+                    "bc_small", "bc_medium", "bc_large", "bc_large_random50", "bc_large_random25")
 
 
 class PolicyError(InputError):
@@ -89,6 +91,78 @@ class Shuttle:
     def act(self, frame: np.ndarray) -> List[str]:
         self.t += 1
         return ["MOVE_FORWARD"] if (self.t - 1) % 4 < 2 else ["MOVE_BACKWARD"]
+
+
+class AlwaysBackward:
+    """Walks backward until a wall behind it stops it: as far as forward on open ground, with nothing seen ahead."""
+
+    def reset(self, seed: int) -> None:
+        pass
+
+    def act(self, frame: np.ndarray) -> List[str]:
+        return ["MOVE_BACKWARD"]
+
+
+class Stand:
+    """Holds no button: stays where it is (a coasting start drifts a little)."""
+
+    def reset(self, seed: int) -> None:
+        pass
+
+    def act(self, frame: np.ndarray) -> List[str]:
+        return []
+
+
+class Dither:
+    """Forward or backward at random each step: a long path that wanders little from its start."""
+
+    def reset(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, frame: np.ndarray) -> List[str]:
+        return ["MOVE_FORWARD"] if self.rng.random() < 0.5 else ["MOVE_BACKWARD"]
+
+
+def _band_brightness(frame: np.ndarray) -> tuple:
+    """Mean brightness of the left, centre and right thirds of the frame's middle band (rows 21-42 of 64). Light
+    fades with distance in this world: over the explorer's walks, the darker side is the deeper one (correlation
+    -0.72 between the sides' brightness and depth differences)."""
+    band = frame[frame.shape[0] // 3: 2 * frame.shape[0] // 3].astype(np.float32).mean(-1)
+    third = band.shape[1] // 3
+    return band[:, :third].mean(), band[:, third:-third].mean(), band[:, -third:].mean()
+
+
+class DarkSeeker:
+    """Turns on what it sees: walks toward the darker (deeper) side of the view, and turns in place toward it when
+    the centre is clearly brighter (a wall close ahead)."""
+    MARGIN = 4.0  # brightness levels (of 255)
+
+    def reset(self, seed: int) -> None:
+        pass
+
+    def act(self, frame: np.ndarray) -> List[str]:
+        left, centre, right = _band_brightness(frame)
+        turn = "TURN_LEFT" if left < right else "TURN_RIGHT"
+        if centre > min(left, right) + self.MARGIN:
+            return [turn]
+        return ["MOVE_FORWARD", turn] if abs(left - right) > self.MARGIN else ["MOVE_FORWARD"]
+
+
+class WallHugger:
+    """Keeps a wall on its right, from the pixels: turns left when the view ahead is a close (bright) wall, bears
+    right when the right side opens up (darker than the centre), else walks on."""
+    MARGIN = 4.0
+
+    def reset(self, seed: int) -> None:
+        pass
+
+    def act(self, frame: np.ndarray) -> List[str]:
+        left, centre, right = _band_brightness(frame)
+        if centre > max(left, right) + self.MARGIN:
+            return ["TURN_LEFT"]
+        if right + self.MARGIN < centre:
+            return ["MOVE_FORWARD", "TURN_RIGHT"]
+        return ["MOVE_FORWARD"]
 
 
 class RandomButtons:
@@ -300,7 +374,9 @@ def bc_weights(policy_dir) -> List[Path]:
 
 
 def builtin_policy(name: str, policy_dir: Path):
-    scripted = {"spin": Spin, "shuttle": Shuttle, "random": RandomButtons, "forward": AlwaysForward}
+    scripted = {"spin": Spin, "shuttle": Shuttle, "random": RandomButtons, "forward": AlwaysForward,
+                "backward": AlwaysBackward, "stand": Stand, "dither": Dither, "dark_seeker": DarkSeeker,
+                "wall_hugger": WallHugger}
     if name in scripted:
         return scripted[name]()
     base, _, rate = name.partition("_random")

@@ -202,3 +202,57 @@ def test_published_and_whole_frame_masking_differ_and_are_checked():
     assert ((per_frame > 0) & (per_frame < S)).any(), "published masks are partial"
     with pytest.raises(ValueError, match="masking must be one of"):
         TrainingRecipe(masking="whole_frame")
+
+
+def _button_features(batch_size, seed=0):
+    """Windows with a 3-wide stream "a" read as (forward, backward, use): each row holds forward or backward."""
+    g = torch.Generator().manual_seed(seed)
+    features = []
+    for _ in range(batch_size):
+        rows = torch.zeros(T, 3)
+        rows[torch.arange(T), torch.randint(0, 2, (T,), generator=g)] = torch.rand(T, generator=g) + 0.1
+        features.append({"tokens": torch.randint(0, VOCAB, (T, H, W), generator=g), "actions": {"a": rows}})
+    return features
+
+
+def test_time_reversal_plays_windows_backward_with_mirrored_actions():
+    """A reversed window's frames run backward and its row t (which drives frame t -> t+1) is row T-2-t with
+    forward and backward swapped; windows that hold a column outside the swaps (USE) are never reversed."""
+    config = action_config()
+    recipe = TrainingRecipe(masking="whole_frames", time_reverse_ratio=0.5, time_reverse_swaps=[[0, 1]])
+    collate = get_maskgit_collator(config, recipe, seed=0)
+    reversed_count = kept_count = 0
+    for step in range(10):
+        features = _button_features(8, seed=step)
+        features[0]["actions"]["a"][3, 2] = 1.0  # USE held once: this window stays as it is
+        batch = collate(features)
+        for b, feature in enumerate(features):
+            tokens, rows = feature["tokens"], feature["actions"]["a"]
+            if torch.equal(batch.labels[b], tokens):
+                assert torch.equal(batch.actions[b], rows)
+                kept_count += 1
+                continue
+            assert b != 0
+            assert torch.equal(batch.labels[b], tokens.flip(0))
+            mirrored = rows[:, [1, 0, 2]]
+            assert torch.equal(batch.actions[b, :T - 1], mirrored.flip(0)[1:])
+            reversed_count += 1
+    assert reversed_count > 20 and kept_count > 20  # about half of each
+
+
+def test_time_reversal_off_keeps_the_masks_and_checks_its_settings():
+    features = _button_features(8, seed=1)
+    plain = get_maskgit_collator(action_config(), TrainingRecipe(masking="whole_frames"), seed=4)(features)
+    zero = get_maskgit_collator(action_config(), TrainingRecipe(masking="whole_frames", time_reverse_ratio=0.0,
+                                                                time_reverse_swaps=[[0, 1]]), seed=4)(features)
+    assert torch.equal(plain.input_ids, zero.input_ids) and torch.equal(plain.actions, zero.actions)
+    with pytest.raises(ValueError, match="time_reverse_swaps must be pairs"):
+        TrainingRecipe(time_reverse_swaps=[[0, 0]])
+    with pytest.raises(ValueError, match="time_reverse_swaps must be pairs"):
+        TrainingRecipe(time_reverse_swaps=[[0, 1, 2]])
+    with pytest.raises(ValueError, match="time_reverse_ratio must be in"):
+        TrainingRecipe(time_reverse_ratio=1.5)
+    with pytest.raises(ValueError, match="3 action columns"):
+        get_maskgit_collator(action_config(), TrainingRecipe(time_reverse_ratio=0.5, time_reverse_swaps=[[0, 3]]))
+    with pytest.raises(ValueError, match="latent actions"):
+        get_maskgit_collator(tiny_config(num_latent_actions=4), TrainingRecipe(time_reverse_ratio=0.5))

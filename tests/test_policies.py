@@ -21,6 +21,36 @@ def test_scripted_policies():
     assert [a.act(None) for _ in range(10)] == [b.act(None) for _ in range(10)]
 
 
+def _banded_frame(left, centre, right):
+    """A (64, 64, 3) frame whose middle band has the given brightness in its left, centre and right thirds."""
+    frame = np.full((64, 64, 3), 50, dtype=np.uint8)
+    frame[21:42, :21], frame[21:42, 21:43], frame[21:42, 43:] = left, centre, right
+    return frame
+
+
+def test_scripted_and_pixel_driven_policies():
+    for name, expected in (("backward", ["MOVE_BACKWARD"]), ("stand", [])):
+        policy = load_policy(name)
+        policy.reset(0)
+        assert policy.act(None) == expected
+    a, b = load_policy("dither"), load_policy("dither")
+    a.reset(5), b.reset(5)
+    steps = [a.act(None) for _ in range(40)]
+    assert steps == [b.act(None) for _ in range(40)]
+    assert {tuple(x) for x in steps} == {("MOVE_FORWARD",), ("MOVE_BACKWARD",)}
+    seeker, hugger = load_policy("dark_seeker"), load_policy("wall_hugger")
+    # a bright wall ahead: the seeker turns toward the darker side, the hugger turns left (its wall on the right)
+    assert seeker.act(_banded_frame(20, 90, 40)) == ["TURN_LEFT"]
+    assert seeker.act(_banded_frame(40, 90, 20)) == ["TURN_RIGHT"]
+    assert hugger.act(_banded_frame(40, 90, 60)) == ["TURN_LEFT"]
+    # open (dark) ahead: the seeker bears toward the darker side, or walks straight when the sides match
+    assert seeker.act(_banded_frame(60, 30, 40)) == ["MOVE_FORWARD", "TURN_RIGHT"]
+    assert seeker.act(_banded_frame(50, 40, 50)) == ["MOVE_FORWARD"]
+    # the right side opens up: the hugger bears right; a wall close on the right: it walks on
+    assert hugger.act(_banded_frame(50, 50, 30)) == ["MOVE_FORWARD", "TURN_RIGHT"]
+    assert hugger.act(_banded_frame(40, 50, 70)) == ["MOVE_FORWARD"]
+
+
 def test_policy_files_load_and_bad_ones_are_named(tmp_path):
     (tmp_path / "mine.py").write_text("class Left:\n    def reset(self, seed): pass\n"
                                       "    def act(self, frame): return ['TURN_LEFT']\n"

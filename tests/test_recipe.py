@@ -188,7 +188,7 @@ def test_gpu_models_are_the_cpu_models_scaled(cpu_model, gpu_model):
 def test_latent_action_config_is_the_main_model_with_latent_actions():
     """sample_world_latent.json is the main command's model with the LAM's 8 latent actions in place of the real
     action streams, so the two kinds of action model compare at the same architecture."""
-    real = ("action_names", "action_dim", "action_step_mean")
+    real = ("action_names", "action_dim", "action_step_mean", "time_reverse_ratio", "time_reverse_swaps")
     main, latent = model_dict(RECIPES / "sample_world.json"), model_dict(CONFIG_DIR / "sample_world_latent.json")
     assert latent == {**{k: v for k, v in main.items() if k not in real}, "num_latent_actions": 8}
     config = GenieConfig.from_pretrained(CONFIG_DIR / "sample_world_latent.json")

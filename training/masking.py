@@ -9,6 +9,7 @@ import torch
 from torch.utils.data import get_worker_info
 
 from training.action_streams import stack_streams, window_actions
+from common.config import ConfigError
 from genie.config import GenieConfig, TrainingRecipe
 from genie.factorization import factorize_token_ids, unfactorize_token_ids
 from genie.model import MaskGITBatch
@@ -90,6 +91,25 @@ def _whole_frame_masks(n: int, T: int, H: int, W: int, generator) -> torch.Tenso
     return masked_nT[:, :, None, None].expand(n, T, H, W)
 
 
+def _time_reversed(labels_BTHW: torch.Tensor, actions_BTD: Optional[torch.Tensor], recipe: TrainingRecipe,
+                   generator):
+    """A share recipe.time_reverse_ratio of the windows (B, T, H, W) played backward, with their actions (B, T, D)
+    (or None) to match: row t drives frame t -> t+1, so the reversed window's row t is the mirrored row T-2-t (its
+    last row drives no frame of the window). Windows with a nonzero (or unknown) column outside the swaps stay."""
+    B = labels_BTHW.shape[0]
+    reverse_B = torch.rand(B, generator=generator) < recipe.time_reverse_ratio
+    if actions_BTD is not None:
+        columns = list(range(actions_BTD.shape[-1]))
+        for a, b in recipe.time_reverse_swaps or []:
+            columns[a], columns[b] = b, a
+        fixed = [d for d, source in enumerate(columns) if source == d]
+        if fixed:
+            reverse_B &= ~(actions_BTD[..., fixed] != 0).any(dim=2).any(dim=1)
+        mirrored_BTD = actions_BTD.flip(1).roll(-1, dims=1)[..., columns]
+        actions_BTD = torch.where(reverse_B[:, None, None], mirrored_BTD, actions_BTD)
+    return torch.where(reverse_B[:, None, None, None], labels_BTHW.flip(1), labels_BTHW), actions_BTD
+
+
 def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] = None, seed=None):
     """Return collate_fn(items) -> MaskGITBatch.
 
@@ -105,6 +125,14 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
     uses a private generator, seeded with seed + worker id inside DataLoader workers, so results are reproducible.
     """
     recipe = recipe or TrainingRecipe()
+    if recipe.time_reverse_ratio > 0:
+        if config.num_latent_actions:
+            raise ConfigError("time_reverse_ratio: latent actions label a transition, which has no mirror; train "
+                              "a model with latent actions without time reversal")
+        swapped = [i for pair in recipe.time_reverse_swaps or [] for i in pair]
+        if swapped and max(swapped) >= config.action_dim:
+            raise ConfigError(f"time_reverse_swaps {recipe.time_reverse_swaps}: the model has {config.action_dim} "
+                              f"action columns (indices 0..{config.action_dim - 1})")
     generators = {}
 
     def generator():
@@ -121,6 +149,8 @@ def get_maskgit_collator(config: GenieConfig, recipe: Optional[TrainingRecipe] =
         T, H, W, F, V = config.T, config.H, config.W, config.num_factored_vocabs, config.factored_vocab_size
         labels_BTHW = _window_tokens(items, config)
         actions_BTD, latent_BT = window_actions(config, stack_streams([item.get("actions", {}) for item in items]))
+        if recipe.time_reverse_ratio > 0:  # drawn only then, so other recipes keep their masks
+            labels_BTHW, actions_BTD = _time_reversed(labels_BTHW, actions_BTD, recipe, g)
         x_BTHWF, random_BTHWF = _corrupt(factorize_token_ids(labels_BTHW, F, V), recipe.max_corrupt_rate, V, g)
         if recipe.masking == "whole_frames":
             mask_BTHW = _whole_frame_masks(len(items), T, H, W, g)
