@@ -21,7 +21,7 @@ import json
 import logging
 import zipfile
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -62,24 +62,34 @@ def check_action(action, name: str) -> np.ndarray:
         raise PolicyError(f"policy {name}: act() returned no buttons it could hold: {e}") from None
 
 
-class Spin:
+class HoldButtons:
+    """Holds the same buttons every step, whatever it sees (`BUTTONS`)."""
+    BUTTONS: Tuple[str, ...] = ()
+
+    def reset(self, seed: int) -> None:
+        pass
+
+    def act(self, frame: np.ndarray) -> List[str]:
+        return list(self.BUTTONS)
+
+
+class Spin(HoldButtons):
     """Turns left in place: sees the room, goes nowhere."""
-
-    def reset(self, seed: int) -> None:
-        pass
-
-    def act(self, frame: np.ndarray) -> List[str]:
-        return ["TURN_LEFT"]
+    BUTTONS = ("TURN_LEFT",)
 
 
-class AlwaysForward:
+class AlwaysForward(HoldButtons):
     """Walks straight ahead until a wall stops it."""
+    BUTTONS = ("MOVE_FORWARD",)
 
-    def reset(self, seed: int) -> None:
-        pass
 
-    def act(self, frame: np.ndarray) -> List[str]:
-        return ["MOVE_FORWARD"]
+class AlwaysBackward(HoldButtons):
+    """Walks backward until a wall behind it stops it: as far as forward on open ground, with nothing seen ahead."""
+    BUTTONS = ("MOVE_BACKWARD",)
+
+
+class Stand(HoldButtons):
+    """Holds no button: stays where it is (a coasting start drifts a little)."""
 
 
 class Shuttle:
@@ -91,26 +101,6 @@ class Shuttle:
     def act(self, frame: np.ndarray) -> List[str]:
         self.t += 1
         return ["MOVE_FORWARD"] if (self.t - 1) % 4 < 2 else ["MOVE_BACKWARD"]
-
-
-class AlwaysBackward:
-    """Walks backward until a wall behind it stops it: as far as forward on open ground, with nothing seen ahead."""
-
-    def reset(self, seed: int) -> None:
-        pass
-
-    def act(self, frame: np.ndarray) -> List[str]:
-        return ["MOVE_BACKWARD"]
-
-
-class Stand:
-    """Holds no button: stays where it is (a coasting start drifts a little)."""
-
-    def reset(self, seed: int) -> None:
-        pass
-
-    def act(self, frame: np.ndarray) -> List[str]:
-        return []
 
 
 class Dither:
