@@ -39,10 +39,7 @@ def average_ranks(values: np.ndarray) -> np.ndarray:
 def spearman(truth, predicted) -> float:
     """Pearson correlation of the average ranks; 0 when either side is constant."""
     t, p = _pair(truth, predicted)
-    rt, rp = average_ranks(t), average_ranks(p)
-    rt, rp = rt - rt.mean(), rp - rp.mean()
-    denominator = np.sqrt((rt ** 2).sum() * (rp ** 2).sum())
-    return float((rt * rp).sum() / denominator) if denominator > 0 else 0.0
+    return pearson(average_ranks(t), average_ranks(p))
 
 
 def _pair_signs(t: np.ndarray, p: np.ndarray):
