@@ -70,7 +70,8 @@ class DoomEnv(gym.Env):
 
     Observation: the (S, S, 3) uint8 frame as the datasets record it. Action: MultiBinary(5), the buttons held for
     the whole step in BUTTON_NAMES order. Reward 0 (a task sets its own); terminated when the level ends (an exit
-    was used); never truncated (wrap it in gymnasium's TimeLimit). info: "pose" (x, y, heading in degrees),
+    was used); never truncated (wrap it in gymnasium's TimeLimit). info: "pose" (x, y, heading in degrees; after
+    the level ends, the last one seen),
     "map", "episode_seed", "frame" (recorded tics walked before the start) and, after a step, "motion" (the
     step's displacement along the start heading in map units and its turn in degrees, counter-clockwise positive).
     """
@@ -92,7 +93,7 @@ class DoomEnv(gym.Env):
         workdir = tempfile.TemporaryDirectory(prefix="vizdoom.", ignore_cleanup_errors=True)
         self._workdir, self._games = workdir.name, []  # the engine (at most one), closed before its folder goes
         self._shutdown = weakref.finalize(self, _shut_down, self._games, workdir)
-        self._map, self._frame, self._start, self._explorer = None, None, {}, None
+        self._map, self._frame, self._start, self._explorer, self._last_pose = None, None, {}, None, None
 
     @property
     def _game(self):
@@ -106,7 +107,10 @@ class DoomEnv(gym.Env):
         return self._game
 
     def _pose(self) -> tuple:
-        return tuple(float(v) for v in self._game.get_state().game_variables)
+        # a level left through its exit has no state: the pose stays where the walk ended
+        if not self._game.is_episode_finished():
+            self._last_pose = tuple(float(v) for v in self._game.get_state().game_variables)
+        return self._last_pose
 
     def _observe(self) -> np.ndarray:
         self._frame = preprocess_frame(self._game.get_state().screen_buffer, self.cfg.frame_size, self._gamma_lut)
@@ -152,13 +156,13 @@ class DoomEnv(gym.Env):
             raise EnvInputError("call reset() before step()")
         buttons = check_buttons(action, len(BUTTON_NAMES))
         if self._game.is_episode_finished():
-            return self._frame, 0.0, True, False, {**self._start, "pose": None, "motion": (0.0, 0.0)}
+            return self._frame, 0.0, True, False, {**self._start, "pose": self._last_pose, "motion": (0.0, 0.0)}
         x0, y0, a0 = self._pose()
         command = engine_action(tuple(int(b) for b in buttons), self.cfg)
         for _ in range(self.step_tics):  # one tic at a time: delta inputs act per tic
             self._game.make_action(command)
             if self._game.is_episode_finished():
-                return self._frame, 0.0, True, False, {**self._start, "pose": None, "motion": (0.0, 0.0)}
+                return self._frame, 0.0, True, False, {**self._start, "pose": self._last_pose, "motion": (0.0, 0.0)}
         x1, y1, a1 = pose = self._pose()
         heading = math.radians(a0)
         motion = ((x1 - x0) * math.cos(heading) + (y1 - y0) * math.sin(heading), (a1 - a0 + 180.0) % 360.0 - 180.0)

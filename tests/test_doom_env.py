@@ -68,3 +68,27 @@ def test_bad_input_is_named(env):
         env.step(np.array([1, 0]))
     with pytest.raises(EnvInputError, match="unknown reset option"):
         env.reset(options={"window": 3})
+
+
+def test_a_walk_out_through_the_exit_keeps_its_last_pose(tmp_path):
+    """A policy that walks into a level's exit ends the episode: the steps after it say so, and the pose stays
+    where the walk ended (the policies protocol reads it as the return)."""
+    from sample_world.policies import check_action, load_policies
+    from evaluation.policy_ranking import replay_start
+
+    exit_env = DoomEnv(maps=["MAP28"])
+    try:
+        policy = load_policies(["wall_hugger"], tmp_path)["wall_hugger"]
+        frame = replay_start(exit_env, {"map": "MAP28", "episode_seed": 4206763306, "frame": 72}, 8, 0).prompt_frames[-1]
+        policy.reset(0)
+        poses, ended = [], []
+        for _ in range(18):
+            frame, _, terminated, _, info = exit_env.step(check_action(policy.act(frame), "wall_hugger"))
+            poses.append(info["pose"])
+            ended.append(terminated)
+        first_end = ended.index(True)
+        assert all(ended[first_end:]) and not any(ended[:first_end])
+        assert all(p == poses[first_end - 1] for p in poses[first_end:])
+        assert exit_env.pose == poses[first_end - 1]
+    finally:
+        exit_env.close()
