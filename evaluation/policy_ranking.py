@@ -241,11 +241,12 @@ class PolicyRankingConfig:
 def ensure_trained(cfg: PolicyRankingConfig) -> None:
     """Train the cloned policies (when cfg.policies names one) and the motion estimator into cfg.policy_dir unless
     they are there, recorded as trained from cfg.policy_train_data (and the cloned ones over this version's macro
-    actions): weights of another world, data or set of macro actions are retrained, with a line saying why."""
+    actions, the estimator as this version's network): weights of another world, data, set of macro actions or
+    network are retrained, with a line saying why."""
     import logging
     from pathlib import Path
 
-    from sample_world.motion_estimator import train_motion_estimator
+    from sample_world.motion_estimator import train_motion_estimator, version_mismatch
     from sample_world.policies import BC_BUDGETS, BC_RECORD, bc_weights, stale_reason, stamp_source, train_bc_policies
 
     logger = logging.getLogger("evaluate")
@@ -253,7 +254,8 @@ def ensure_trained(cfg: PolicyRankingConfig) -> None:
     estimator = policy_dir / "motion_estimator.safetensors"
     wanted_bc = any(p.partition("_random")[0] in BC_BUDGETS for p in cfg.policies if ":" not in p)
     stale_bc = stale_reason(bc_weights(policy_dir), policy_dir / BC_RECORD, train_npz, True) if wanted_bc else None
-    stale_estimator = stale_reason([estimator], estimator.with_suffix(".json"), train_npz, False)
+    stale_estimator = (stale_reason([estimator], estimator.with_suffix(".json"), train_npz, False)
+                       or version_mismatch(estimator))
     if (stale_bc or stale_estimator) and not train_npz.is_file():
         raise PolicyEvalError(f"--policy_train_data {train_npz} not found: the recorded walks that the cloned "
                               f"policies and the motion estimator learn from (./build.sh makes them), needed "

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from sample_world.motion_estimator import MotionNet, dead_reckon, distance_from_start, pose_motion, step_pairs
+from common.errors import InputError
+from sample_world.motion_estimator import (MotionNet, dead_reckon, distance_from_start, load_motion_estimator, pose_motion,
+                                          step_pairs)
 from sample_world.policies import (MACRO_NAMES, MACROS, UNMATCHED, PolicyError, RandomButtons, Shuttle, check_action,
                                    load_policies, load_policy, macro_ids, macro_targets)
 
@@ -157,6 +159,11 @@ def test_cached_policies_of_other_data_or_macros_are_retrained(tmp_path, monkeyp
     retrains(["bc"], "does not record the training data's fingerprint")
     tiny_walks(data, 1)  # another world at the same path
     retrains(["bc", "estimator"], "the training data is now")
+    estimator_record = policy_dir / "motion_estimator.json"
+    estimator_record.write_text(json.dumps({**json.loads(estimator_record.read_text()), "version": 1}))
+    with pytest.raises(InputError, match="motion estimator of version 1, this version reads pairs with version 2"):
+        load_motion_estimator(policy_dir / "motion_estimator.safetensors")  # its weights load, but mean another thing
+    retrains(["estimator"], "motion estimator of version 1")
     (policy_dir / "motion_estimator.json").write_text("{}")  # an estimator of no recorded data, and the data gone
     data.unlink()
     with pytest.raises(PolicyEvalError, match="train.npz not found.*needed because .*motion_estimator.json does not "
@@ -196,10 +203,49 @@ def test_pose_motion_step_pairs_and_dead_reckoning_by_hand():
     assert distance_from_start([[10, 0], [-10, 0]]) == pytest.approx(0.0)  # shuttling gets nowhere
 
 
-def test_motion_net_reads_frames_only():
+def test_motion_net_reads_frames_only_and_a_pair_backwards_as_the_opposite_motion():
     net = MotionNet().eval()
     frames = np.random.default_rng(0).integers(0, 256, size=(4, 64, 64, 3), dtype=np.uint8)
-    assert net.motion(frames).shape == (3, 3)
+    motion = net.motion(frames)
+    assert motion.shape == (3, 3) and np.abs(motion).min() > 0
+    np.testing.assert_allclose(net.motion(frames[::-1])[::-1], -motion, rtol=1e-5, atol=1e-6)
+    assert not net.motion(np.stack([frames[0], frames[0], frames[0]])).any()  # standing still reads as exactly still
+
+
+def test_mirrored_pairs_turn_the_other_way():
+    from sample_world.motion_estimator import mirrored
+
+    rng = np.random.default_rng(0)
+    before, after = (torch.from_numpy(rng.integers(0, 256, size=(2, 64, 64, 3), dtype=np.uint8)) for _ in range(2))
+    goal = torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    b, a, g = mirrored(before, after, goal, torch.tensor([True, False]))
+    assert torch.equal(b[0], before[0].flip(1)) and torch.equal(a[0], after[0].flip(1))  # left and right swapped
+    assert torch.equal(b[1], before[1]) and torch.equal(a[1], after[1])
+    assert g.tolist() == [[1.0, -2.0, -3.0], [4.0, 5.0, 6.0]]
+
+
+def test_walks_too_short_for_a_step_are_a_clear_error(tmp_path):
+    from sample_world.motion_estimator import train_motion_estimator
+
+    np.savez(tmp_path / "train.npz", frames=np.zeros((10, 64, 64, 3), np.uint8), poses=np.zeros((10, 3), np.float32),
+             segment_ids=np.zeros(10, np.int64))
+    with pytest.raises(InputError, match="no walk is longer than one step"):
+        train_motion_estimator(tmp_path / "train.npz", tmp_path / "estimator.safetensors", steps=1, progress=False)
+
+
+def test_recoloured_pairs_share_one_colour_change():
+    from sample_world.motion_estimator import recoloured
+
+    rng = np.random.default_rng(0)
+    grey = np.repeat(rng.integers(60, 200, size=(8, 64, 64, 1), dtype=np.uint8), 3, axis=-1)
+    before = torch.from_numpy(grey)
+    after = torch.from_numpy(np.roll(grey, 5, axis=2))  # the same picture, moved
+    new_before, new_after = recoloured(before, after, np.random.default_rng(1))
+    assert new_before.dtype == torch.uint8 and new_before.shape == before.shape
+    assert not torch.equal(new_before, before)
+    assert torch.equal(torch.roll(new_before, 5, dims=2), new_after)  # one change for both frames: the motion kept
+    spread = [new_before[i].float().mean((0, 1)) for i in range(8)]
+    assert max(float((s.max() - s.min())) for s in spread) > 5  # grey made coloured: channels scaled apart
 
 
 # ------------------------------------------------------------------ the protocol, with the real world
