@@ -23,8 +23,8 @@ import numpy as np
 from gymnasium import spaces
 
 from common.errors import InputError
-from sample_world.render import (BUTTON_NAMES, HZ, SIDECAR_NAME, STEP_TICS, VAL_MAPS, WorldConfig,  # noqa: F401
-                                 buttons_from_names, check_maps, engine_action, gamma_table, make_game,
+from sample_world.render import (BUTTON_NAMES, HZ, MAX_STEP, SIDECAR_NAME, STEP_TICS, VAL_MAPS,  # noqa: F401
+                                 WorldConfig, buttons_from_names, check_maps, engine_action, gamma_table, make_game,
                                  preprocess_frame, sidecar_world_config, start_walk)
 
 MAX_START_FRAME = 1500  # recorded tics a random start walks before it begins (a recorded walk's length)
@@ -70,8 +70,9 @@ class DoomEnv(gym.Env):
 
     Observation: the (S, S, 3) uint8 frame as the datasets record it. Action: MultiBinary(5), the buttons held for
     the whole step in BUTTON_NAMES order. Reward 0 (a task sets its own); terminated when the level ends (an exit
-    was used); never truncated (wrap it in gymnasium's TimeLimit). info: "pose" (x, y, heading in degrees; after
-    the level ends, the last one seen),
+    was used) or a teleporter moved the player (as the recorded walks end there: no world model was shown where one
+    leads; the frame and pose stay those before it, and info["teleported"] is True); never truncated (wrap it in
+    gymnasium's TimeLimit). After the end, steps keep the last frame and pose. info: "pose" (x, y, heading in degrees),
     "map", "episode_seed", "frame" (recorded tics walked before the start) and, after a step, "motion" (the
     step's displacement along the start heading in map units and its turn in degrees, counter-clockwise positive).
     """
@@ -94,6 +95,7 @@ class DoomEnv(gym.Env):
         self._workdir, self._games = workdir.name, []  # the engine (at most one), closed before its folder goes
         self._shutdown = weakref.finalize(self, _shut_down, self._games, workdir)
         self._map, self._frame, self._start, self._explorer, self._last_pose = None, None, {}, None, None
+        self._ended = False
 
     @property
     def _game(self):
@@ -108,7 +110,7 @@ class DoomEnv(gym.Env):
 
     def _pose(self) -> tuple:
         # a level left through its exit has no state: the pose stays where the walk ended
-        if not self._game.is_episode_finished():
+        if not (self._ended or self._game.is_episode_finished()):
             self._last_pose = tuple(float(v) for v in self._game.get_state().game_variables)
         return self._last_pose
 
@@ -129,7 +131,7 @@ class DoomEnv(gym.Env):
         frame = int(options.get("frame", self.np_random.integers(0, MAX_START_FRAME)))
         if frame < 0:
             raise EnvInputError(f"frame must be >= 0, got {frame}")
-        self._explorer = start_walk(self._game_on(map_name), episode_seed, self.cfg)
+        self._explorer, self._ended = start_walk(self._game_on(map_name), episode_seed, self.cfg), False
         self._start = {"map": map_name, "episode_seed": episode_seed, "frame": frame}
         self.follow_explorer(frame)  # the explorer's recorded tics up to the start frame
         return self._observe(), {**self._start, "pose": self._pose()}
@@ -155,18 +157,31 @@ class DoomEnv(gym.Env):
         if self._game is None or self._frame is None:
             raise EnvInputError("call reset() before step()")
         buttons = check_buttons(action, len(BUTTON_NAMES))
-        if self._game.is_episode_finished():
-            return self._frame, 0.0, True, False, {**self._start, "pose": self._last_pose, "motion": (0.0, 0.0)}
+        ended = {**self._start, "pose": self._last_pose, "motion": (0.0, 0.0)}
+        if self._ended or self._game.is_episode_finished():
+            return self._frame, 0.0, True, False, ended
         x0, y0, a0 = self._pose()
         command = engine_action(tuple(int(b) for b in buttons), self.cfg)
         for _ in range(self.step_tics):  # one tic at a time: delta inputs act per tic
             self._game.make_action(command)
             if self._game.is_episode_finished():
-                return self._frame, 0.0, True, False, {**self._start, "pose": self._last_pose, "motion": (0.0, 0.0)}
+                self._ended = True
+                return self._frame, 0.0, True, False, ended
         x1, y1, a1 = pose = self._pose()
+        turn = (a1 - a0 + 180.0) % 360.0 - 180.0
+        if self._teleported(math.hypot(x1 - x0, y1 - y0), turn, buttons):
+            self._ended, self._last_pose = True, (x0, y0, a0)
+            return self._frame, 0.0, True, False, {**ended, "pose": self._last_pose, "teleported": True}
         heading = math.radians(a0)
-        motion = ((x1 - x0) * math.cos(heading) + (y1 - y0) * math.sin(heading), (a1 - a0 + 180.0) % 360.0 - 180.0)
+        motion = ((x1 - x0) * math.cos(heading) + (y1 - y0) * math.sin(heading), turn)
         return self._observe(), 0.0, False, False, {**self._start, "pose": pose, "motion": motion}
+
+    def _teleported(self, distance: float, turn: float, buttons: np.ndarray) -> bool:
+        """No walk covers `distance` in a step (Doom caps momentum at MAX_STEP a tic), and a held turn button turns
+        exactly turn_speed a tic: anything else is a teleporter."""
+        held_turn = (int(buttons[2]) - int(buttons[3])) * self.cfg.turn_speed * self.step_tics
+        off = abs((turn - held_turn + 180.0) % 360.0 - 180.0)
+        return distance > MAX_STEP * self.step_tics or off > 1.0
 
     def render(self):
         return None if self.render_mode is None else self._frame

@@ -92,3 +92,24 @@ def test_a_walk_out_through_the_exit_keeps_its_last_pose(tmp_path):
         assert exit_env.pose == poses[first_end - 1]
     finally:
         exit_env.close()
+
+
+def test_a_teleporter_ends_the_walk_where_it_stood():
+    """Backing into a teleporter (MAP28, behind this start) is no walking step: the walk ends before it, with the
+    frame and pose of before, as the recorded walks end; without the rule the pose jumps ~4,700 map units."""
+    from evaluation.policy_ranking import replay_start
+
+    teleport_env = DoomEnv(maps=["MAP28"])
+    try:
+        start = replay_start(teleport_env, {"map": "MAP28", "episode_seed": 4206763306, "frame": 72}, 8, 0)
+        pose = teleport_env.pose
+        frame, _, terminated, _, info = teleport_env.step(buttons_from_names(["MOVE_BACKWARD"]))
+        assert terminated and info["teleported"] and info["pose"] == pose == teleport_env.pose
+        np.testing.assert_array_equal(frame, start.prompt_frames[-1])
+        frame, _, terminated, _, info = teleport_env.step(buttons_from_names(["MOVE_FORWARD"]))
+        assert terminated and info["pose"] == pose
+        teleport_env.reset(options=start.options)  # a new walk walks again
+        _, _, terminated, _, info = teleport_env.step(buttons_from_names(["TURN_LEFT"]))
+        assert not terminated and "teleported" not in info
+    finally:
+        teleport_env.close()
