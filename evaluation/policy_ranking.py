@@ -238,7 +238,7 @@ class PolicyRankingConfig:
     num_threads: int = 0
 
 
-def ensure_trained(cfg: PolicyRankingConfig) -> None:
+def ensure_trained(cfg: PolicyRankingConfig, device="cpu") -> None:
     """Train the cloned policies (when cfg.policies names one) and the motion estimator into cfg.policy_dir unless
     they are there, recorded as trained from cfg.policy_train_data (and the cloned ones over this version's macro
     actions, the estimator as this version's network): weights of another world, data, set of macro actions or
@@ -265,7 +265,7 @@ def ensure_trained(cfg: PolicyRankingConfig) -> None:
         train_bc_policies(train_npz, policy_dir, seed=0)
     if stale_estimator:
         logger.info("training the motion estimator into %s: %s", estimator, stale_estimator)
-        train_motion_estimator(train_npz, estimator, seed=0)
+        train_motion_estimator(train_npz, estimator, seed=0, device=device)
         stamp_source(estimator.with_suffix(".json"), train_npz)
 
 
@@ -283,7 +283,7 @@ def run_policies(cfg: PolicyRankingConfig) -> dict:
     logger = logging.getLogger("evaluate")
     device = start_process(cfg.device, cfg.num_threads, cfg.seed)
     maps = list(cfg.maps)
-    ensure_trained(cfg)
+    ensure_trained(cfg, device)
     policies = load_policies(cfg.policies, Path(cfg.policy_dir))
     estimator = load_motion_estimator(Path(cfg.policy_dir) / "motion_estimator.safetensors")
     env = WorldModelEnv.from_checkpoint(cfg.checkpoint_dir, None, cfg.tokenizer_ckpt, device=device)

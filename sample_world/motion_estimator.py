@@ -97,10 +97,10 @@ def recoloured(before_BHW3: torch.Tensor, after_BHW3: torch.Tensor, rng: np.rand
 
 
 def train_motion_estimator(train_npz, out_path, steps: int = 8000, seed: int = 0, batch_size: int = 64,
-                           progress: bool = True) -> MotionNet:
+                           progress: bool = True, device="cpu") -> MotionNet:
     """Fit MotionNet to the recorded walks of train_npz (frames, poses, segment_ids), every pair recoloured and half
     of them mirrored, the learning rate decaying to zero on a cosine; saved at out_path (.safetensors, and a .json
-    of how)."""
+    of how). Trained on `device`, returned on the CPU."""
     from tqdm import tqdm
 
     with np.load(train_npz) as npz:
@@ -114,17 +114,20 @@ def train_motion_estimator(train_npz, out_path, steps: int = 8000, seed: int = 0
     net = MotionNet()
     net.scale.copy_(torch.from_numpy(target.std(axis=0)).clamp(min=1e-3))
     target_t = torch.from_numpy(target) / net.scale
+    net.to(device)
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: 0.5 * (1.0 + np.cos(np.pi * s / steps)))
     for _ in tqdm(range(steps), desc="motion estimator", disable=not progress):
         batch = rng.integers(len(first), size=batch_size)
         before, after, goal = mirrored(torch.from_numpy(frames[first[batch]]), torch.from_numpy(frames[second[batch]]),
                                        target_t[batch], torch.from_numpy(rng.random(batch_size) < 0.5))
-        loss = nn.functional.smooth_l1_loss(net(*recoloured(before, after, rng)), goal)
+        before, after = recoloured(before, after, rng)
+        loss = nn.functional.smooth_l1_loss(net(before.to(device), after.to(device)), goal.to(device))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
         schedule.step()
+    net.cpu()
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.tmp")

@@ -154,3 +154,19 @@ def test_evaluate_and_generate_on_the_device(data, tmp_path):
                 tmp_path / "generated", "--window_size", "4", "--stride", "1", "--num_prompt_frames", "2",
                 "--num_examples", "2", "--device", DEVICE])
     assert (tmp_path / "generated" / "video.bin").is_file()
+
+
+def test_motion_estimator_trains_on_the_device_and_loads_on_the_cpu(tmp_path):
+    run_python(f"""
+        import numpy as np
+        from sample_world.motion_estimator import load_motion_estimator, train_motion_estimator
+
+        rng = np.random.default_rng(0)
+        np.savez("{tmp_path}/train.npz", frames=rng.integers(0, 256, size=(40, 64, 64, 3), dtype=np.uint8),
+                 poses=rng.normal(size=(40, 3)).astype(np.float32), segment_ids=np.zeros(40, np.int64))
+        net = train_motion_estimator("{tmp_path}/train.npz", "{tmp_path}/est.safetensors", steps=3, progress=False,
+                                     device=DEVICE)
+        assert next(net.parameters()).device.type == "cpu"
+        frames = rng.integers(0, 256, size=(3, 64, 64, 3), dtype=np.uint8)
+        assert np.allclose(load_motion_estimator("{tmp_path}/est.safetensors").motion(frames), net.motion(frames))
+    """)
