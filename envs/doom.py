@@ -109,7 +109,8 @@ class DoomEnv(gym.Env):
         return self._game
 
     def _pose(self) -> tuple:
-        # a level left through its exit has no state: the pose stays where the walk ended
+        # a level left through its exit has no state, and a teleporter's far side is no walk: the pose stays where
+        # the walk ended
         if not (self._ended or self._game.is_episode_finished()):
             self._last_pose = tuple(float(v) for v in self._game.get_state().game_variables)
         return self._last_pose

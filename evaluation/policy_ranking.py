@@ -8,7 +8,8 @@ one that walks into a wall keeps pressing forward and stays put.
 Each start is a recorded walk of the explorer on one of the maps (episode seed and frame drawn from --seed): the
 real world replays it to the start frame, and its last P frames (15 tics apart) and the buttons held between them
 are the world model's prompt. From the same start every policy then drives, for K steps, closed loop:
-- the real world (envs/doom.py): `real_return` from the engine's poses;
+- the real world (envs/doom.py): `real_return` from the engine's poses (a walk that takes a level's exit or a
+  teleporter ends where it stood);
 - the world model (envs/world_model.py): the policy sees the model's frames, its buttons drive the model;
   `model_return` is the motion estimator's (sample_world/motion_estimator.py: frames in, motion out, no actions read)
   dead reckoning of the model's frames;

@@ -5,7 +5,7 @@ the actions, so a world model's imagined frames and the real ones are measured t
 frame's heading (forward and leftward, map units: a walker pressed against a wall slides along it) and its turn
 (degrees, counter-clockwise positive), trained on the sample world's recorded frames and poses
 (`train_motion_estimator`), each pair also played backwards (the motion of a walk reversed: backward steps and the
-other turn, which the explorer rarely does), mirrored left to right, and a share of still pairs. The network is
+other turn, which the explorer rarely does), mirrored left to right and recoloured. The network is
 antisymmetric by construction: a pair read backwards gives the opposite motion, so a frame paired with itself reads
 exactly no motion (a policy that stands still is not seen drifting) and backward steps are read as well as forward
 ones. `distance_from_start` dead-reckons a walk's frames into how far it ended from where it began.
