@@ -141,11 +141,13 @@ def train_motion_estimator(train_npz, out_path, steps: int = 8000, seed: int = 0
 def version_mismatch(path) -> Optional[str]:
     """Why the estimator at path (.safetensors, its record the .json beside it) is not this version's network,
     None when it is."""
+    from sample_world.policies import read_record
+
     record_path = Path(path).with_suffix(".json")
-    try:
-        version = json.loads(record_path.read_text()).get("version", 1)
-    except (OSError, json.JSONDecodeError, AttributeError):
+    record = read_record(record_path)
+    if record is None:
         return f"{record_path} is missing or unreadable"
+    version = record.get("version", 1)
     if version != ESTIMATOR_VERSION:
         return (f"{path} is a motion estimator of version {version}, this version reads pairs with version "
                 f"{ESTIMATOR_VERSION}'s network")

@@ -62,12 +62,16 @@ def check_action(action, name: str) -> np.ndarray:
         raise PolicyError(f"policy {name}: act() returned no buttons it could hold: {e}") from None
 
 
-class HoldButtons:
-    """Holds the same buttons every step, whatever it sees (`BUTTONS`)."""
-    BUTTONS: Tuple[str, ...] = ()
+class Memoryless:
+    """A policy whose action depends on the frame alone: nothing to reset."""
 
     def reset(self, seed: int) -> None:
         pass
+
+
+class HoldButtons(Memoryless):
+    """Holds the same buttons every step, whatever it sees (`BUTTONS`)."""
+    BUTTONS: Tuple[str, ...] = ()
 
     def act(self, frame: np.ndarray) -> List[str]:
         return list(self.BUTTONS)
@@ -113,6 +117,9 @@ class Dither:
         return ["MOVE_FORWARD"] if self.rng.random() < 0.5 else ["MOVE_BACKWARD"]
 
 
+BRIGHTNESS_MARGIN = 4.0  # brightness levels (of 255) that the pixel-steering policies call a difference
+
+
 def _band_brightness(frame: np.ndarray) -> tuple:
     """Mean brightness of the left, centre and right thirds of the frame's middle band (rows 21-42 of 64). Light
     fades with distance in this world: over the explorer's walks, the darker side is the deeper one (correlation
@@ -122,35 +129,27 @@ def _band_brightness(frame: np.ndarray) -> tuple:
     return band[:, :third].mean(), band[:, third:-third].mean(), band[:, -third:].mean()
 
 
-class DarkSeeker:
+class DarkSeeker(Memoryless):
     """Turns on what it sees: walks toward the darker (deeper) side of the view, and turns in place toward it when
     the centre is clearly brighter (a wall close ahead)."""
-    MARGIN = 4.0  # brightness levels (of 255)
-
-    def reset(self, seed: int) -> None:
-        pass
 
     def act(self, frame: np.ndarray) -> List[str]:
         left, centre, right = _band_brightness(frame)
         turn = "TURN_LEFT" if left < right else "TURN_RIGHT"
-        if centre > min(left, right) + self.MARGIN:
+        if centre > min(left, right) + BRIGHTNESS_MARGIN:
             return [turn]
-        return ["MOVE_FORWARD", turn] if abs(left - right) > self.MARGIN else ["MOVE_FORWARD"]
+        return ["MOVE_FORWARD", turn] if abs(left - right) > BRIGHTNESS_MARGIN else ["MOVE_FORWARD"]
 
 
-class WallHugger:
+class WallHugger(Memoryless):
     """Keeps a wall on its right, from the pixels: turns left when the view ahead is a close (bright) wall, bears
     right when the right side opens up (darker than the centre), else walks on."""
-    MARGIN = 4.0
-
-    def reset(self, seed: int) -> None:
-        pass
 
     def act(self, frame: np.ndarray) -> List[str]:
         left, centre, right = _band_brightness(frame)
-        if centre > max(left, right) + self.MARGIN:
+        if centre > max(left, right) + BRIGHTNESS_MARGIN:
             return ["TURN_LEFT"]
-        if right + self.MARGIN < centre:
+        if right + BRIGHTNESS_MARGIN < centre:
             return ["MOVE_FORWARD", "TURN_RIGHT"]
         return ["MOVE_FORWARD"]
 
