@@ -28,7 +28,8 @@ when one is close (the depth buffer). A policy suite and a player use every butt
 its windows show (one button row every 15 tics), so since version 3 the walker also holds, each for at least one
 window step (15-45 tics): backward walks (alone or with a turn), no button at all, backing away from a wall while
 turning, a forward walk turned straight into a backward one (shuttling), and USE at walls ahead (walking up to
-within reach first; with or without forward, then waiting while a door, if it is one, opens). Over the tics of a
+within reach and standing until the view is still first, since version 4; with or without forward, then waiting
+while a door, if it is one, opens). Over the tics of a
 split, about: forward (with or without a turn) 43 %, turn in place 35 %, backward 12 %, no button 7 %, USE 4 %;
 the sidecar records each split's shares (`button_stats`). Version 2's walker (V2_WALKER) pressed backward in 1 % of
 the tics, USE for single tics (which windows almost never show) and never stood still.
@@ -78,7 +79,7 @@ HELDOUT_MAPS = ("MAP18",)
 # numbers stay comparable across versions) and on the held-out map.
 VAL_MAPS = TRAIN_MAPS[:8] + HELDOUT_MAPS
 MAX_STEP = 30.0  # map units per tic; Doom caps momentum here, so a longer step is a teleport
-GENERATOR_VERSION = 3  # bump when a change in this file changes the generated data
+GENERATOR_VERSION = 4  # bump when a change in this file changes the generated data
 SIDECAR_NAME = "sample_world.json"
 STATS_KEY = "button_stats"  # the sidecar's key of what was generated (the rest: what was asked for)
 STALL_TIMEOUT_S = 600.0  # seconds without a finished task before a worker pool is declared stuck (a task: ~5 s)
@@ -156,6 +157,9 @@ class WorldConfig:
     use_hold_tics: int = 15  # tics USE is held (Doom presses once per hold): a whole window step
     use_wait_tics: int = 30  # a USE lasts this long: held for use_hold_tics, then waiting while a door opens
     use_alone_share: float = 0.5  # share of the USEs with no other button (the rest push forward, waiting too)
+    # tics standing still (no button) before USE is pressed, so that a USE alone shows a view that stays put: a walker
+    # that presses it as it arrives coasts ~40 units on (version 3: a USE step moved a quarter of a forward step)
+    use_settle_tics: int = 20
     max_attempts: int = 4  # seeds tried per episode until one passes is_good_episode
     min_episode_frac: float = 0.5  # shorter walks (cut by a teleporter or a level exit) are retried
     min_cells_per_1000_tics: float = 8.0  # fewer distinct 64x64-unit cells visited means trapped: retried
@@ -172,6 +176,8 @@ class WorldConfig:
         if not 1 <= self.sticky_min_tics <= self.sticky_max_tics:
             raise ValueError(f"WorldConfig needs 1 <= sticky_min_tics <= sticky_max_tics, got "
                              f"{self.sticky_min_tics}, {self.sticky_max_tics}")
+        if self.use_settle_tics < 0:
+            raise ValueError(f"WorldConfig needs use_settle_tics >= 0, got {self.use_settle_tics}")
         if not 1 <= self.use_hold_tics <= self.use_wait_tics:
             raise ValueError(f"WorldConfig needs 1 <= use_hold_tics <= use_wait_tics, got {self.use_hold_tics}, "
                              f"{self.use_wait_tics}")
@@ -188,20 +194,24 @@ class WorldConfig:
         return math.radians(self.turn_speed) * HZ
 
 
-# The settings added in generator version 3 at the values that make its walker the version-2 one, exactly (every
-# behaviour added is off and draws no random number): worlds built before were walked by that walker, and the real
-# world (envs/doom.py) replays their recorded walks to start from their frames.
-V2_WALKER = {"use_wait_tics": 30, "use_hold_tics": 1, "use_alone_share": 0.0, "door_use_prob": 0.0,
+# The settings added in generator version 4 at the values that make its walker the version-3 one, and those added in
+# version 3 at the values that make it the version-2 one, exactly (every behaviour added is off and draws no random
+# number): worlds built before were walked by those walkers, and the real world (envs/doom.py) replays their
+# recorded walks to start from their frames.
+V3_WALKER = {"use_settle_tics": 0}
+V2_WALKER = {**V3_WALKER, "use_wait_tics": 30, "use_hold_tics": 1, "use_alone_share": 0.0, "door_use_prob": 0.0,
              "stand_weight": 0.0, "backward_turn_share": 0.0, "sticky_min_tics": 6, "sticky_max_tics": 20,
              "reverse_prob": 0.0, "avoid_backward_prob": 0.0}
 
 
 def sidecar_world_config(sidecar: dict) -> WorldConfig:
     """The WorldConfig a sample world was walked with, from its sidecar (sample_world.json): its recorded settings,
-    with the version-2 walker's (V2_WALKER) for the settings a world of an older generator version does not name."""
+    with the older walkers' (V2_WALKER, V3_WALKER) for the settings a world of an older generator version does not
+    name."""
     config = sidecar["config"]
-    if sidecar.get("generator_version", 0) < 3:
-        config = {**V2_WALKER, **config}
+    version = sidecar.get("generator_version", 0)
+    if version < 4:
+        config = {**(V2_WALKER if version < 3 else V3_WALKER), **config}
     return WorldConfig(**config)
 
 
@@ -235,6 +245,7 @@ class ExplorerPolicy:
         self.trapped_tics = int(360 / cfg.turn_speed)  # a full turn without an opening: try USE (a closed door?)
         self.turn_around_tics = (int(100 / cfg.turn_speed), int(180 / cfg.turn_speed))
         self.back_tics = 0  # tics left backing away from a wall before turning in place
+        self.settle_tics = 0  # tics left standing before USE is pressed
         self.use_tics = 0  # tics left holding USE
         self.use_forward = True  # whether the USE pushes forward
         self.since_use = cfg.use_cooldown_tics  # tics since the last USE
@@ -281,13 +292,17 @@ class ExplorerPolicy:
             self._start("stand", self._sticky())
 
     def _start_use(self) -> tuple:
-        """Press USE for use_hold_tics, alone (standing while a door opens) or pushing forward."""
+        """Stand for use_settle_tics, then press USE for use_hold_tics, alone (standing while a door opens) or
+        pushing forward."""
         self.use_forward = not _chance(self.rng, self.cfg.use_alone_share)
-        self._start("use", self.cfg.use_wait_tics)
-        self.use_tics, self.since_use = self.cfg.use_hold_tics, 0
+        self._start("use", self.cfg.use_settle_tics + self.cfg.use_wait_tics)
+        self.settle_tics, self.use_tics, self.since_use = self.cfg.use_settle_tics, self.cfg.use_hold_tics, 0
         return self._use_buttons()
 
     def _use_buttons(self) -> tuple:
+        if self.settle_tics > 0:
+            self.settle_tics -= 1
+            return _ACTIONS["stand"]
         pressing = self.use_tics > 0
         self.use_tics -= 1
         return (int(self.use_forward), 0, 0, 0, int(pressing))
@@ -325,7 +340,7 @@ class ExplorerPolicy:
             if self.hold <= 0:
                 self._start("forward", _hold(rng, 20, 60))
         elif self.action == "use":
-            # USE is held first; then the walker keeps pushing (or standing) while a door (if any) opens.
+            # the walker stands, then holds USE, then keeps pushing (or standing) while a door (if any) opens
             if self.hold <= 0:
                 self._start("forward", _hold(rng, 10, 30))
                 return _ACTIONS["forward"]

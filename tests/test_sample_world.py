@@ -353,6 +353,12 @@ def test_walker_holds_every_behaviour_for_window_steps():
         edges = np.flatnonzero(np.diff(np.r_[0, column, 0]))
         runs = edges[1::2] - edges[::2]
         assert np.median(runs) >= sw.STEP_TICS - 1, runs
+    # USE alone is pressed standing: the view has stopped (a quarter of walking speed at most; it coasted ~40
+    # units on when the walker pressed it as it arrived)
+    press = np.flatnonzero((b[1:, 4] == 1) & (b[:-1, 4] == 0)) + 1
+    alone = press[(b[press, 0] == 0) & (b[press, 1] == 0)]
+    speed = np.hypot(*np.diff(data["poses"][:, :2].astype(np.float64), axis=0).T)  # map units per tic
+    assert len(alone) and (speed[alone - 1] < 0.25 * FAST.top_speed / sw.HZ).all(), speed[alone - 1]
     assert sw.is_good_episode({"frames": data["frames"], "poses": data["poses"]}, 1500, FAST)
 
 
