@@ -362,15 +362,18 @@ def test_walker_holds_every_behaviour_for_window_steps():
     assert sw.is_good_episode({"frames": data["frames"], "poses": data["poses"]}, 1500, FAST)
 
 
-def test_older_worlds_keep_the_version_2_walker():
+def test_older_worlds_keep_their_walkers():
     """A sidecar of generator version 2 names none of the walker's new settings: they take V2_WALKER's values, the
-    walker that recorded those worlds (the real world replays their walks), which never stands still, walks backward
+    walker that recorded those worlds (version 3's take V3_WALKER's) (the real world replays their walks), which never stands still, walks backward
     only now and then and presses USE for single tics."""
     config = {k: v for k, v in dataclasses.asdict(FAST).items() if k not in sw.V2_WALKER}
     config["clear_depth"] = 28  # what version 2 recorded
     v2 = sw.sidecar_world_config({"generator_version": 2, "config": config})
     assert all(getattr(v2, k) == v for k, v in sw.V2_WALKER.items())
-    assert sw.sidecar_world_config({"generator_version": 3, "config": dataclasses.asdict(FAST)}) == FAST
+    v3_config = {k: v for k, v in dataclasses.asdict(FAST).items() if k not in sw.V3_WALKER}
+    v3 = sw.sidecar_world_config({"generator_version": 3, "config": v3_config})
+    assert v3.use_settle_tics == 0 and v3 == dataclasses.replace(FAST, use_settle_tics=0)  # presses USE arriving
+    assert sw.sidecar_world_config({"generator_version": 4, "config": dataclasses.asdict(FAST)}) == FAST
     data = sw.generate_split(("MAP01",), episodes_per_map=1, episode_len=600, seed=0, cfg=v2, progress=False)
     b = data["actions_buttons"]
     assert not (b.sum(axis=1) == 0).any() and not ((b[:, 1] == 1) & (b[:, 2] + b[:, 3] > 0)).any()
