@@ -70,13 +70,17 @@ def test_bad_input_is_named(env):
         env.reset(options={"window": 3})
 
 
+# the start below was found with the version-3 walker, whose warm-up walk leads there
+V3_WORLD = sw.WorldConfig(**sw.V3_WALKER)
+
+
 def test_a_walk_out_through_the_exit_keeps_its_last_pose(tmp_path):
     """A policy that walks into a level's exit ends the episode: the steps after it say so, and the pose stays
     where the walk ended (the policies protocol reads it as the return)."""
     from sample_world.policies import check_action, load_policies
     from evaluation.policy_ranking import replay_start
 
-    exit_env = DoomEnv(maps=["MAP28"])
+    exit_env = DoomEnv(maps=["MAP28"], cfg=V3_WORLD)
     try:
         policy = load_policies(["wall_hugger"], tmp_path)["wall_hugger"]
         frame = replay_start(exit_env, {"map": "MAP28", "episode_seed": 4206763306, "frame": 72}, 8, 0).prompt_frames[-1]
@@ -99,7 +103,7 @@ def test_a_teleporter_ends_the_walk_where_it_stood():
     frame and pose of before, as the recorded walks end; without the rule the pose jumps ~4,700 map units."""
     from evaluation.policy_ranking import replay_start
 
-    teleport_env = DoomEnv(maps=["MAP28"])
+    teleport_env = DoomEnv(maps=["MAP28"], cfg=V3_WORLD)
     try:
         start = replay_start(teleport_env, {"map": "MAP28", "episode_seed": 4206763306, "frame": 72}, 8, 0)
         pose = teleport_env.pose
